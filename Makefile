@@ -1,0 +1,36 @@
+# Two entry points that do all the set-up on a fresh machine (Python 3.11, pip, make):
+#   make demo   sets up .venv and runs the main job on the embedded default scene
+#   make test   sets up .venv and runs the test suite
+# TORCH_SPEC chooses the torch to install when the venv has none (default: the CPU wheel
+# pinned below; a CUDA user can pass e.g. TORCH_SPEC="torch==2.13.0 --index-url ...").
+
+PYTHON ?= python3.11
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+TORCH_SPEC ?= torch==2.13.0
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup test test-fast demo bench addon clean-venv
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (Python 3.11 is required)"; exit 1; }
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@# Keep an already-installed torch (CPU or CUDA); otherwise install TORCH_SPEC first so that
+	@# resolving the project's unpinned 'torch' never pulls CUDA packages.
+	@$(PY) -c "import torch" >/dev/null 2>&1 || $(PY) -m pip install --quiet $(TORCH_SPEC)
+	$(PY) -m pip install --quiet -e ".[test]"
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+demo: $(STAMP)
+	$(VENV)/bin/osn demo
+
+bench: $(STAMP)
+	$(PY) -m benchmarks.run_all
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,53 @@
+"""Shared command-line plumbing: one-line user errors, ``--debug`` tracebacks, exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import traceback
+from typing import Callable, Sequence
+
+
+class UserError(Exception):
+    """An error caused by the user's input: printed as one line, exit code 2, no traceback."""
+
+
+#: Exceptions that describe bad input rather than a bug; their message is the whole story.
+USER_ERRORS: tuple[type[BaseException], ...] = (UserError, ValueError, FileNotFoundError, KeyError)
+
+
+def run_cli(
+    parser: argparse.ArgumentParser, argv: Sequence[str] | None, prog: str
+) -> int:
+    """Parse ``argv`` and call ``args.func(args)``; map user errors to one line and exit 2."""
+    args = parser.parse_args(argv)
+    if not hasattr(args, "func"):
+        parser.print_help()
+        return 2
+    try:
+        rc = args.func(args)
+        return int(rc or 0)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    except USER_ERRORS as e:
+        if getattr(args, "debug", False):
+            traceback.print_exc()
+        msg = str(e) if not isinstance(e, KeyError) else f"missing key {e}"
+        print(f"{prog}: error: {msg}", file=sys.stderr)
+        return 2
+
+
+def add_common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--debug", action="store_true", help="show the full traceback on errors")
+
+
+def subcommand(
+    subparsers: argparse._SubParsersAction, name: str, func: Callable[[argparse.Namespace], int | None], help: str, description: str | None = None
+) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        name, help=help, description=description or help, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    add_common(p)
+    p.set_defaults(func=func)
+    return p

@@ -1,0 +1,142 @@
+"""The exact region of valid scale configurations (numpy only).
+
+A configuration scales object k by ``s_k`` about the training camera centre of every timestamp.
+The training video is unchanged iff no visibility order flips on any training pixel:
+
+    valid  <=>  s_i / s_j < B_ij  for every ordered pair (i, j),
+    B_ij = min over training pixels p with visible object i and object j also covering p
+           of d_j(p) / d_i(p)            (+inf when no pixel constrains the pair)
+
+where ``d_k`` is the planar depth of object k rendered alone. In log coordinates
+``x_k = log s_k`` this is the polyhedron ``x_i - x_j < log B_ij`` (difference constraints).
+With the anchor fixed at ``x_a = 0``, the tightest interval of each object follows from all-pairs
+shortest paths over the constraint graph (Floyd-Warshall on ``log B``).
+
+All computations are done in log space so ratios from 1e-300 to 1e300 stay finite and exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class EmptyRegionError(ValueError):
+    """The constraints admit no configuration (a negative cycle in the constraint graph)."""
+
+
+def accumulate_ratio_bounds(
+    bounds: np.ndarray, visible: np.ndarray, alone_depths: np.ndarray
+) -> np.ndarray:
+    """Tighten ratio bounds ``B (K, K)`` with one training frame, in place; returns ``B``.
+
+    Args:
+        bounds: ``(K, K)`` current bounds, ``+inf`` where unconstrained.
+        visible: ``(H, W)`` integer id of the visible object per pixel (``>= K`` for none).
+        alone_depths: ``(K, H, W)`` planar depth of each object rendered alone, ``+inf`` (or any
+            non-finite / non-positive value) where the object does not cover the pixel.
+    """
+    K = bounds.shape[0]
+    covered = np.isfinite(alone_depths) & (alone_depths > 0)
+    for i in range(K):
+        sel = visible == i
+        if not sel.any():
+            continue
+        d_i = alone_depths[i][sel]
+        for j in range(K):
+            if j == i:
+                continue
+            cov = covered[j][sel]
+            if not cov.any():
+                continue
+            ratio = np.min(alone_depths[j][sel][cov] / d_i[cov])
+            if ratio < bounds[i, j]:
+                bounds[i, j] = ratio
+    return bounds
+
+
+@dataclass
+class ValidRegion:
+    """The exact valid region: ``s_i / s_j < ratio_bounds[i, j]`` for all ``i != j``.
+
+    Attributes:
+        anchor: id of the object whose scale is fixed at 1.
+        ratio_bounds: ``(K, K)`` float64, ``+inf`` where a pair is unconstrained; diagonal ``+inf``.
+        intervals: ``(K, 2)`` open interval ``(lo, hi)`` of each object's scale with the anchor
+            at 1 and the others free (the projection of the region); ``lo`` may be 0, ``hi`` inf.
+    """
+
+    anchor: int
+    ratio_bounds: np.ndarray
+    intervals: np.ndarray
+
+    @classmethod
+    def from_bounds(cls, ratio_bounds: np.ndarray, anchor: int = 0) -> "ValidRegion":
+        """Build the region, deriving per-object intervals by shortest paths.
+
+        Raises:
+            EmptyRegionError: when no configuration satisfies every constraint, naming a cycle.
+        """
+        B = np.array(ratio_bounds, dtype=np.float64)
+        K = B.shape[0]
+        if B.shape != (K, K):
+            raise ValueError(f"ratio bounds must be square, got {B.shape}")
+        if np.any(np.isnan(B)) or np.any(B <= 0):
+            raise ValueError("ratio bounds must be positive (NaN or <= 0 found)")
+        np.fill_diagonal(B, np.inf)
+        # Edge j -> i with weight log B_ij encodes x_i <= x_j + log B_ij.
+        with np.errstate(divide="ignore"):
+            W = np.log(B)
+        np.fill_diagonal(W, 0.0)
+        dist = W.copy()
+        for m in range(K):
+            dist = np.minimum(dist, dist[:, m : m + 1] + dist[m : m + 1, :])
+        # dist[i, j] is the tightest bound on x_i - x_j. The inequalities are strict, so the region
+        # is empty iff some cycle has total weight <= 0: dist[i, j] + dist[j, i] <= 0 for i != j.
+        cycle = dist + dist.T
+        np.fill_diagonal(cycle, np.inf)
+        bad = sorted(set(np.argwhere(cycle <= 0).ravel().tolist()))
+        if bad:
+            raise EmptyRegionError(
+                f"the valid region is empty: the depth-order constraints of objects {bad} contradict each other"
+            )
+        hi = np.exp(dist[:, anchor])  # x_k - x_a <= dist[k, a]
+        lo = np.exp(-dist[anchor, :])  # x_a - x_k <= dist[a, k]
+        intervals = np.stack([lo, hi], axis=1)
+        intervals[anchor] = 1.0
+        return cls(anchor=anchor, ratio_bounds=B, intervals=intervals)
+
+    @property
+    def num_objects(self) -> int:
+        return self.ratio_bounds.shape[0]
+
+    def log_margin(self, scales: np.ndarray) -> np.ndarray:
+        """Smallest slack ``min_ij log B_ij - (log s_i - log s_j)`` per scale vector.
+
+        ``scales`` is ``(K,)`` or ``(N, K)``; positive means strictly valid. Returns ``()`` or
+        ``(N,)``. Non-positive or non-finite scales are reported as ``-inf`` (invalid).
+        """
+        s = np.asarray(scales, dtype=np.float64)
+        single = s.ndim == 1
+        s = np.atleast_2d(s)
+        if s.shape[1] != self.num_objects:
+            raise ValueError(f"expected {self.num_objects} scales, got {s.shape[1]}")
+        ok = np.all(np.isfinite(s) & (s > 0), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.log(np.where(s > 0, s, 1.0))
+            logB = np.log(self.ratio_bounds)
+        slack = logB[None] - (x[:, :, None] - x[:, None, :])
+        K = self.num_objects
+        slack[:, np.arange(K), np.arange(K)] = np.inf
+        m = slack.reshape(len(s), -1).min(axis=1)
+        m = np.where(ok, m, -np.inf)
+        return m[0] if single else m
+
+    def contains(self, scales: np.ndarray, log_margin: float = 0.0) -> np.ndarray | bool:
+        """Whether scale vector(s) are valid, optionally with a safety margin in log space.
+
+        The anchor's entry is used as given; pass it as 1 for the usual convention.
+        """
+        m = self.log_margin(scales)
+        return m > log_margin
