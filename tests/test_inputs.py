@@ -1,0 +1,78 @@
+import numpy as np
+import pytest
+
+from benchgen import dataset as D
+from benchgen.cameras import invert_pose, pixel_rays
+from osn import inputs as I
+from tests.synthetic import write_synthetic_dataset
+
+
+@pytest.fixture()
+def oracle(tmp_path):
+    root = tmp_path / "ds"
+    write_synthetic_dataset(root, T=4, V=2, K=3)
+    return root, D.load_scene(root), I.oracle_inputs(root, I.OracleConfig(points_per_frame=40, min_pixels=1))
+
+
+def test_oracle_poses_are_consistent_with_world_motion(oracle):
+    root, scene, inp = oracle
+    K = inp.K
+    for o in inp.objects:
+        obj = scene.objects[o.id]
+        unit = o.unit_to_world
+        # A sparse point seen in frame a, moved with the object to frame b, must land where the
+        # object-space inverse pose of frame b puts it (rigid object, shared object coordinates).
+        a, b = 0, len(o.frames) - 1
+        ta, tb = o.frames[a], o.frames[b]
+        pix, dep = o.sparse_pix[a][:5], o.sparse_depth[a][:5]
+        orig, dirs = pixel_rays(K, np.eye(4), inp.width, inp.height, pixels=pix)
+        p_cam_a = orig + dep[:, None] * dirs  # object units
+        p_obj = p_cam_a @ o.cam_to_obj[a][:3, :3].T + o.cam_to_obj[a][:3, 3]
+        b_from_obj = invert_pose(o.cam_to_obj[b])
+        p_cam_b = p_obj @ b_from_obj[:3, :3].T + b_from_obj[:3, 3]
+        # Ground truth in metres through the world.
+        c2w = {f.time_index: f.camera_to_world for f in scene.train_frames}
+        pw_a = (p_cam_a * unit) @ c2w[ta][:3, :3].T + c2w[ta][:3, 3]
+        pw_b = pw_a @ (obj.poses[tb] @ invert_pose(obj.poses[ta]))[:3, :3].T + (obj.poses[tb] @ invert_pose(obj.poses[ta]))[:3, 3]
+        w2c_b = invert_pose(c2w[tb])
+        expected = (pw_b @ w2c_b[:3, :3].T + w2c_b[:3, 3]) / unit
+        assert np.allclose(p_cam_b, expected, atol=1e-9)
+        if o.id == inp.anchor:  # the static anchor's frame is reachable from the world
+            W = inp.world_to_anchor
+            assert np.allclose(pw_a @ W[:3, :3].T + W[:3, 3], p_obj, atol=1e-9)
+        # Rigid poses, median sparse depth 1 in object units.
+        R = o.cam_to_obj[:, :3, :3]
+        assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+        assert np.median(np.concatenate(o.sparse_depth)) == pytest.approx(1.0)
+
+
+def test_scale_conversions_and_ranges(oracle):
+    root, scene, inp = oracle
+    ranges = inp.scale_ranges()
+    assert np.all(ranges[:, 0] < ranges[:, 1])
+    s = np.array([0.0, 0.5, 0.999])
+    sbar = I.denormalise_scales(np.tile(s, (3, 1)).T[:, :3], ranges)
+    assert np.allclose(I.normalise_scales(sbar, ranges), np.tile(s, (3, 1)).T)
+    actual = np.array([1.0, 0.7, 1.3])
+    assert np.allclose(inp.actual_scales(inp.true_scales(actual)), actual)
+    assert inp.true_scales(np.ones(3))[inp.anchor] == 1.0
+
+
+def test_inverted_range_is_an_error():
+    with pytest.raises(I.InputsError, match="empty scale range"):
+        I.scale_range(1.0, 2.0, 0.5, 3.0)
+    with pytest.raises(I.InputsError, match="finite and positive"):
+        I.scale_range(0.0, 2.0, 0.5, 3.0)
+
+
+def test_save_load_round_trip(oracle, tmp_path):
+    root, scene, inp = oracle
+    I.save_inputs(tmp_path / "in", inp)
+    back = I.load_inputs(tmp_path / "in")
+    assert back.source == "oracle" and back.num_objects == inp.num_objects
+    assert np.array_equal(back.images, inp.images) and np.array_equal(back.masks, inp.masks)
+    assert np.array_equal(back.world_to_anchor, inp.world_to_anchor)
+    for a, b in zip(back.objects, inp.objects):
+        assert np.array_equal(a.cam_to_obj, b.cam_to_obj) and a.near == b.near
+        assert all(np.array_equal(x, y) for x, y in zip(a.sparse_depth, b.sparse_depth))
+        assert all(np.array_equal(x, y) for x, y in zip(a.sparse_pix, b.sparse_pix))
