@@ -256,6 +256,71 @@ def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
         scale_range(inputs.scene_near, inputs.scene_far, o.near, o.far)
 
 
+def scene_volume(objects: list[ObjectInputs], near_factor: float, far_factor: float) -> tuple[float, float]:
+    """Scene near/far of Eq. 1: below every object's near and beyond every object's far."""
+    if not (0 < near_factor < 1 <= far_factor):
+        raise InputsError(f"scene volume factors must satisfy 0 < near ({near_factor}) < 1 <= far ({far_factor})")
+    return near_factor * min(o.near for o in objects), far_factor * max(o.far for o in objects)
+
+
+def object_inputs_from_observations(
+    object_id: int,
+    name: str,
+    frames: np.ndarray,
+    cam_to_obj: np.ndarray,
+    sparse_pix: list[np.ndarray],
+    sparse_depth: list[np.ndarray],
+    sparse_weight: list[np.ndarray],
+    K: np.ndarray,
+    width: int,
+    height: int,
+    box_padding: float,
+    metres_per_unit: float | None,
+) -> ObjectInputs:
+    """Normalise one object's poses and sparse depths (any unit) into :class:`ObjectInputs`.
+
+    Shared by the oracle and SfM so both produce identical conventions: the object frame becomes
+    the camera of its first frame, the unit makes the median sparse depth 1, near/far come from
+    robust percentiles of the depths, and the canonical box from percentiles of the points.
+
+    Args:
+        cam_to_obj: ``(F, 4, 4)`` rigid camera-to-object poses in the input unit.
+        metres_per_unit: metres per input unit when known (ground truth), else None.
+    """
+    all_d = np.concatenate(sparse_depth) if sparse_depth else np.zeros(0)
+    if len(all_d) == 0 or not np.all(np.isfinite(all_d)) or np.any(all_d <= 0):
+        raise InputsError(f"object {object_id} ({name}): no usable positive sparse depths")
+    unit = float(np.median(all_d))
+    ref_inv = invert_pose(cam_to_obj[0])
+    poses = ref_inv[None] @ cam_to_obj  # camera t -> camera-of-first-frame, input unit, rigid
+    poses[:, :3, 3] /= unit
+    depths = [np.asarray(d, dtype=np.float64) / unit for d in sparse_depth]
+    pts = []
+    for pix, dep, M in zip(sparse_pix, depths, poses):
+        o, d = pixel_rays(K, np.eye(4), width, height, pixels=pix)
+        p_cam = o + dep[:, None] * d
+        pts.append(p_cam @ M[:3, :3].T + M[:3, 3])
+    pts_a = np.concatenate(pts)
+    lo, hi = np.percentile(pts_a, 0.5, axis=0), np.percentile(pts_a, 99.5, axis=0)
+    # Pad every axis, also a flat one (a wall): at least a small fraction of the largest extent.
+    pad = box_padding * np.maximum(hi - lo, 1e-2 * float(np.max(hi - lo)))
+    all_u = all_d / unit
+    near, far = float(np.percentile(all_u, 0.5)) * 0.9, float(np.percentile(all_u, 99.5)) * 1.1
+    return ObjectInputs(
+        id=object_id,
+        name=name,
+        frames=np.asarray(frames, dtype=np.int64),
+        cam_to_obj=poses,
+        near=near,
+        far=far,
+        bbox=np.stack([lo - pad, hi + pad]),
+        sparse_pix=[np.asarray(p, dtype=np.int64) for p in sparse_pix],
+        sparse_depth=depths,
+        sparse_weight=[np.asarray(w, dtype=np.float64) for w in sparse_weight],
+        unit_to_world=None if metres_per_unit is None else unit * metres_per_unit,
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # Oracle preprocessing
 # --------------------------------------------------------------------------------------------
@@ -312,48 +377,16 @@ def oracle_inputs(dataset_root: str | Path, cfg: OracleConfig | None = None) -> 
             pick = np.sort(rng.choice(len(u), size=n, replace=False))
             pix_l.append(np.stack([u[pick], v[pick]], axis=1).astype(np.int64))
             dep_l.append(depths_a[t][v[pick], u[pick]].astype(np.float64))
-        unit = float(np.median(np.concatenate(dep_l)))  # metres per object unit
-        # Object frame = camera of the first frame, in the object's unit. Camera-to-object in
-        # metres: (P(t0)^-1 C(t0))^-1 P(t0)^-1 ... composed so the object is rigid in its frame.
+        # Object frame = camera of the first frame (the object's body frame seen from there).
         obj_from_world = [invert_pose(obj.poses[t]) for t in frames]
-        ref = obj_from_world[0] @ c2w[frames[0]]  # camera t0 -> object body (metres)
-        ref_inv = invert_pose(ref)
-        cam_to_obj = []
-        for t, ofw in zip(frames, obj_from_world):
-            M = ref_inv @ ofw @ c2w[t]  # camera t -> object frame (metres, rigid)
-            M[:3, 3] /= unit
-            cam_to_obj.append(M)
-        cam_to_obj_a = np.stack(cam_to_obj)
-        dep_units = [d / unit for d in dep_l]
-        # Canonical box from the sparse points in object coordinates (robust percentiles).
-        pts = []
-        for t_i, (pix, dep) in enumerate(zip(pix_l, dep_units)):
-            o, d = pixel_rays(K, np.eye(4), scene.width, scene.height, pixels=pix)
-            p_cam = o + dep[:, None] * d
-            M = cam_to_obj_a[t_i]
-            pts.append(p_cam @ M[:3, :3].T + M[:3, 3])
-        pts_a = np.concatenate(pts)
-        lo, hi = np.percentile(pts_a, 0.5, axis=0), np.percentile(pts_a, 99.5, axis=0)
-        pad = cfg.box_padding * np.maximum(hi - lo, 1e-3 * np.abs(hi - lo).max())
-        all_d = np.concatenate(dep_units)
-        near, far = float(np.percentile(all_d, 0.5)) * 0.9, float(np.percentile(all_d, 99.5)) * 1.1
+        cam_to_body = np.stack([ofw @ c2w[t] for t, ofw in zip(frames, obj_from_world)])
         objects.append(
-            ObjectInputs(
-                id=obj.id,
-                name=obj.name,
-                frames=np.array(frames, dtype=np.int64),
-                cam_to_obj=cam_to_obj_a,
-                near=near,
-                far=far,
-                bbox=np.stack([lo - pad, hi + pad]),
-                sparse_pix=pix_l,
-                sparse_depth=dep_units,
-                sparse_weight=[np.ones(len(d)) for d in dep_units],
-                unit_to_world=unit,
+            object_inputs_from_observations(
+                obj.id, obj.name, np.array(frames), cam_to_body, pix_l, dep_l, [np.ones(len(d)) for d in dep_l],
+                K, scene.width, scene.height, cfg.box_padding, metres_per_unit=1.0,
             )
         )
-    scene_near = cfg.scene_near_factor * min(o.near for o in objects)
-    scene_far = cfg.scene_far_factor * max(o.far for o in objects)
+    scene_near, scene_far = scene_volume(objects, cfg.scene_near_factor, cfg.scene_far_factor)
     anchor = objects[scene.anchor_id]
     # Anchor coordinates from the world (the anchor is static in benchgen scenes): similarity.
     a_obj = scene.objects[scene.anchor_id]
