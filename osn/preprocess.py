@@ -1,0 +1,411 @@
+"""``osn preprocess``: per-object SfM with pycolmap, from frames and instance masks.
+
+For every object, SIFT features are extracted only inside its mask, matched (exhaustively for
+short videos, sequentially for long ones) and reconstructed by incremental mapping with the known,
+shared pinhole camera (no intrinsics refinement). Each object's reconstruction has its own frame
+and unit; :func:`osn.inputs.object_inputs_from_observations` normalises it exactly as the oracle
+does, so ``osn train`` accepts either.
+
+No GUI, every random seed fixed, single-threaded where threads change results.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from benchgen import dataset as D
+from benchgen.cameras import fit_similarity, intrinsics_from_fov, invert_pose, rotation_angle_deg
+from .inputs import (
+    InputsError,
+    ObjectInputs,
+    OracleConfig,
+    SceneInputs,
+    check_inputs,
+    object_inputs_from_observations,
+    oracle_inputs,
+    scene_volume,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PreprocessConfig:
+    """Options of per-object SfM.
+
+    Attributes:
+        matcher: ``exhaustive``, ``sequential`` or ``auto`` (exhaustive up to
+            ``exhaustive_max_frames`` frames).
+        sequential_overlap: neighbours matched per frame by the sequential matcher.
+        max_features: SIFT features per image and object.
+        peak_threshold: SIFT peak threshold (lower finds more features on small images).
+        mask_erosion: pixels removed from each mask border, so features do not straddle objects.
+        min_frames: an object must register at least this many frames.
+        min_points: ... and triangulate at least this many 3D points.
+        min_mask_pixels: frames where the object covers fewer pixels are not used for it.
+        on_failure: ``stop`` raises on an object that fails; ``skip`` trains without it.
+        max_reprojection_error: observations above this (pixels) are dropped.
+        scene_near_factor, scene_far_factor, box_padding: as in the oracle (shared normalisation).
+        seed: every random seed of pycolmap.
+    """
+
+    matcher: str = "auto"
+    exhaustive_max_frames: int = 60
+    sequential_overlap: int = 10
+    max_features: int = 4096
+    peak_threshold: float = 0.004
+    mask_erosion: int = 1
+    min_frames: int = 3
+    min_points: int = 20
+    min_mask_pixels: int = 16
+    on_failure: str = "stop"
+    max_reprojection_error: float = 4.0
+    scene_near_factor: float = OracleConfig.scene_near_factor
+    scene_far_factor: float = OracleConfig.scene_far_factor
+    box_padding: float = OracleConfig.box_padding
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.matcher not in ("auto", "exhaustive", "sequential"):
+            raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
+        if self.on_failure not in ("stop", "skip"):
+            raise ValueError(f"on_failure must be stop or skip, got {self.on_failure!r}")
+
+
+class ObjectRegistrationError(InputsError):
+    """An object could not be reconstructed; the message names it, the counts and what helps."""
+
+
+@dataclass
+class ObjectSfM:
+    """Raw per-object reconstruction, in the reconstruction's own frame and unit."""
+
+    frames: np.ndarray
+    cam_to_obj: np.ndarray
+    sparse_pix: list[np.ndarray]
+    sparse_depth: list[np.ndarray]
+    sparse_weight: list[np.ndarray]
+    num_features: int
+    num_points: int
+    candidate_frames: int
+
+
+@dataclass
+class PreprocessReport:
+    """What SfM achieved per object; accuracy entries only when ground truth is known."""
+
+    objects: list[dict] = field(default_factory=list)
+    dropped: list[int] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------------------------
+# pycolmap
+# --------------------------------------------------------------------------------------------
+
+
+def _erode(mask: np.ndarray, r: int) -> np.ndarray:
+    if r <= 0:
+        return mask
+    from scipy.ndimage import binary_erosion
+
+    return binary_erosion(mask, iterations=r)
+
+
+def reconstruct_object(
+    images: np.ndarray, masks: np.ndarray, object_id: int, K: np.ndarray, cfg: PreprocessConfig, name: str = ""
+) -> ObjectSfM:
+    """SfM of one object from ``images (T,H,W,3) uint8`` and ``masks (T,H,W)`` instance ids.
+
+    Raises:
+        ObjectRegistrationError: too few frames, features or points; the message says what helps.
+    """
+    import imageio.v3 as iio
+    import pycolmap
+
+    label = f"object {object_id}" + (f" ({name})" if name else "")
+    T, H, W = masks.shape
+    frames = [t for t in range(T) if (masks[t] == object_id).sum() >= cfg.min_mask_pixels]
+    advice = "use more frames, a higher resolution, or more texture on the object"
+    if len(frames) < cfg.min_frames:
+        raise ObjectRegistrationError(
+            f"{label}: visible in {len(frames)} frame(s) (>= {cfg.min_mask_pixels} pixels), "
+            f"needs >= {cfg.min_frames}; {advice}"
+        )
+    work = Path(tempfile.mkdtemp(prefix=f"osn_sfm_{object_id}_"))
+    try:
+        img_dir, mask_dir, out_dir = work / "images", work / "masks", work / "sparse"
+        for d in (img_dir, mask_dir, out_dir):
+            d.mkdir()
+        names = []
+        for t in frames:
+            n = f"{t:05d}.png"
+            names.append(n)
+            iio.imwrite(img_dir / n, images[t])
+            m = _erode(masks[t] == object_id, cfg.mask_erosion)
+            iio.imwrite(mask_dir / f"{n}.png", (m * 255).astype(np.uint8))
+        db = work / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
+        reader.mask_path = str(mask_dir)
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = 1
+        extraction.sift.max_num_features = cfg.max_features
+        extraction.sift.peak_threshold = cfg.peak_threshold
+        pycolmap.extract_features(
+            db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
+        )
+        database = pycolmap.Database.open(db)
+        try:
+            num_features = int(database.num_keypoints())
+        finally:
+            database.close()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = 1
+        use_seq = cfg.matcher == "sequential" or (cfg.matcher == "auto" and len(frames) > cfg.exhaustive_max_frames)
+        if use_seq:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = cfg.sequential_overlap
+            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.random_seed = cfg.seed
+        opts.mapper.random_seed = cfg.seed
+        opts.num_threads = 1
+        opts.mapper.num_threads = 1
+        opts.ba_refine_focal_length = False
+        opts.ba_refine_principal_point = False
+        opts.ba_refine_extra_params = False
+        opts.min_model_size = min(cfg.min_frames, 3)
+        recs = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
+        if not recs:
+            raise ObjectRegistrationError(
+                f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {advice}"
+            )
+        rec = max(recs.values(), key=lambda r: r.num_reg_images())
+        return _collect(rec, label, frames, num_features, cfg, advice)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _collect(rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, advice: str) -> ObjectSfM:
+    reg = sorted(rec.images.values(), key=lambda im: im.name)
+    reg = [im for im in reg if im.has_pose]
+    if len(reg) < cfg.min_frames or rec.num_points3D() < cfg.min_points:
+        raise ObjectRegistrationError(
+            f"{label}: registered {len(reg)} of {len(frames)} frames with {rec.num_points3D()} points "
+            f"from {num_features} features; needs >= {cfg.min_frames} frames and >= {cfg.min_points} points; {advice}"
+        )
+    out_frames, poses, pix_l, dep_l, w_l = [], [], [], [], []
+    for im in reg:
+        cfw = np.eye(4)
+        cfw[:3, :] = im.cam_from_world().matrix()
+        xy, z, err = [], [], []
+        for p2 in im.points2D:
+            if not p2.has_point3D():
+                continue
+            pt = rec.point3D(p2.point3D_id)
+            if pt.error > cfg.max_reprojection_error:
+                continue
+            depth = float((cfw[:3, :3] @ pt.xyz + cfw[:3, 3])[2])
+            if depth <= 0:
+                continue
+            xy.append(p2.xy)
+            z.append(depth)
+            err.append(pt.error)
+        if not z:
+            continue
+        out_frames.append(int(Path(im.name).stem))
+        poses.append(invert_pose(cfw))
+        pix_l.append(np.floor(np.asarray(xy)).astype(np.int64))  # pixel centres at .5
+        dep_l.append(np.asarray(z))
+        # Down-weight observations with large reprojection error (Cauchy-like, 1 px scale).
+        w_l.append(1.0 / (1.0 + np.asarray(err) ** 2))
+    return ObjectSfM(
+        frames=np.array(out_frames, dtype=np.int64),
+        cam_to_obj=np.stack(poses),
+        sparse_pix=pix_l,
+        sparse_depth=dep_l,
+        sparse_weight=w_l,
+        num_features=num_features,
+        num_points=int(rec.num_points3D()),
+        candidate_frames=len(frames),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Whole scenes
+# --------------------------------------------------------------------------------------------
+
+
+def preprocess_video(
+    images: np.ndarray,
+    masks: np.ndarray,
+    K: np.ndarray,
+    timestamps: np.ndarray,
+    object_names: dict[int, str],
+    anchor: int,
+    cfg: PreprocessConfig,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[SceneInputs, PreprocessReport]:
+    """Per-object SfM for a whole video; returns inputs (SfM frames and units) and a report."""
+    T, H, W = masks.shape
+    report = PreprocessReport()
+    objects: list[ObjectInputs] = []
+    for oid, name in sorted(object_names.items()):
+        if progress:
+            progress(f"SfM of object {oid} ({name})")
+        try:
+            sfm = reconstruct_object(images, masks, oid, K, cfg, name)
+        except ObjectRegistrationError as e:
+            if cfg.on_failure == "stop" or oid == anchor:
+                raise
+            log.warning("%s -- training without it", e)
+            report.dropped.append(oid)
+            report.objects.append({"id": oid, "name": name, "error": str(e)})
+            continue
+        objects.append(
+            object_inputs_from_observations(
+                oid, name, sfm.frames, sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight,
+                K, W, H, cfg.box_padding, metres_per_unit=None,
+            )
+        )
+        report.objects.append(
+            {
+                "id": oid,
+                "name": name,
+                "candidate_frames": sfm.candidate_frames,
+                "registered_frames": len(sfm.frames),
+                "features": sfm.num_features,
+                "points": sfm.num_points,
+            }
+        )
+    masks = masks.copy()
+    for oid in report.dropped:
+        masks[masks == oid] = IGNORE_ID
+    scene_near, scene_far = scene_volume(objects, cfg.scene_near_factor, cfg.scene_far_factor)
+    inputs = SceneInputs(
+        width=W, height=H, K=K, timestamps=np.asarray(timestamps, dtype=np.float64), images=images, masks=masks,
+        objects=objects, anchor=anchor, scene_near=scene_near, scene_far=scene_far, source="colmap",
+        meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
+    )
+    return inputs, report
+
+
+#: Mask value for pixels of objects dropped by ``on_failure=skip``: excluded from every loss.
+IGNORE_ID = 254
+
+
+def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress=None) -> tuple[SceneInputs, PreprocessReport]:
+    """Per-object SfM on a benchgen dataset's training video, aligned to its ground truth.
+
+    The dataset's instance masks stand in for a learned segmenter and its intrinsics are the
+    known camera. Ground truth is used only *after* SfM, to measure accuracy and to record each
+    object's unit and the world-to-anchor similarity (needed to place test cameras).
+    """
+    root = Path(dataset_root)
+    oracle = oracle_inputs(root, OracleConfig(min_pixels=1, points_per_frame=1))
+    scene = D.load_scene(root)
+    names = {o.id: o.name for o in scene.objects}
+    inputs, report = preprocess_video(
+        oracle.images, oracle.masks, oracle.K, oracle.timestamps, names, scene.anchor_id, cfg, progress
+    )
+    align_to_ground_truth(inputs, oracle, report, scene)
+    inputs.meta["dataset"] = str(root)
+    check_inputs(inputs, root)
+    return inputs, report
+
+
+def align_to_ground_truth(inputs: SceneInputs, oracle: SceneInputs, report: PreprocessReport, scene: D.Scene) -> None:
+    """Fill units, world-to-anchor and accuracy figures by aligning SfM to the oracle poses.
+
+    Per object, a similarity maps the SfM camera centres (object frame) onto the ground-truth ones;
+    its scale gives the metres per SfM unit. Rotation error is measured after that alignment.
+    """
+    by_id = {o.id: o for o in oracle.objects}
+    for o, rep in zip(inputs.objects, [r for r in report.objects if "error" not in r]):
+        gt = by_id[o.id]
+        slots = [gt.frame_slot(int(t)) for t in o.frames]
+        keep = [i for i, s in enumerate(slots) if s is not None]
+        c_sfm = o.cam_to_obj[keep, :3, 3]
+        c_gt = gt.cam_to_obj[[slots[i] for i in keep], :3, 3]
+        try:
+            S = fit_similarity(c_sfm, c_gt)
+        except ValueError as e:
+            rep["alignment"] = f"not measurable: {e}"
+            continue
+        scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
+        R = S[:3, :3] / scale
+        o.unit_to_world = scale * gt.unit_to_world
+        rot = [rotation_angle_deg(R @ o.cam_to_obj[i, :3, :3], gt.cam_to_obj[slots[i], :3, :3]) for i in keep]
+        aligned = c_sfm @ S[:3, :3].T + S[:3, 3]
+        err = np.linalg.norm(aligned - c_gt, axis=1) * gt.unit_to_world  # metres
+        gt_visible = len(gt.frames)
+        rep.update(
+            gt_visible_frames=gt_visible,
+            registered_fraction=len(o.frames) / max(gt_visible, 1),
+            rotation_error_deg_max=float(max(rot)),
+            rotation_error_deg_mean=float(np.mean(rot)),
+            center_error_m_mean=float(err.mean()),
+            center_error_m_max=float(err.max()),
+        )
+    # Test-view alignment: the similarity between ground-truth training cameras (world) and the
+    # anchor's SfM cameras. It uses only camera centres, which any video with known cameras has.
+    anchor = next(o for o in inputs.objects if o.id == inputs.anchor)
+    centers_world = scene.training_camera_centers()[anchor.frames]
+    centers_anchor = anchor.cam_to_obj[:, :3, 3]
+    inputs.world_to_anchor = fit_similarity(centers_world, centers_anchor)
+
+
+def load_video(frames_dir: str | Path, masks_dir: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Read a video as sorted PNG/JPG frames plus same-named instance-id PNG masks.
+
+    Masks are single-channel 8-bit images of object ids (``255`` = no object). Raises
+    ``InputsError`` naming the file on a missing mask, a size mismatch or an unreadable image.
+    """
+    import imageio.v3 as iio
+
+    frames_dir, masks_dir = Path(frames_dir), Path(masks_dir)
+    if not frames_dir.is_dir():
+        raise InputsError(f"{frames_dir}: not a directory of frames")
+    files = sorted(p for p in frames_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if not files:
+        raise InputsError(f"{frames_dir}: no .png/.jpg frames")
+    images, masks = [], []
+    for p in files:
+        try:
+            img = D.read_rgb(p) if p.suffix.lower() == ".png" else np.asarray(iio.imread(p))[..., :3]
+        except (D.DatasetError, OSError, ValueError) as e:
+            raise InputsError(str(e)) from None
+        mp = masks_dir / (p.stem + ".png")
+        try:
+            m = D.read_ids(mp)
+        except D.DatasetError as e:
+            raise InputsError(str(e)) from None
+        if m.shape != img.shape[:2] or (images and img.shape != images[0].shape):
+            raise InputsError(f"{mp}: size {m.shape[::-1]} does not match frame {p} {img.shape[1::-1]} or the first frame")
+        images.append(img)
+        masks.append(m)
+    return np.stack(images), np.stack(masks), [p.name for p in files]
+
+
+def intrinsics_from_args(intrinsics: str | None, fov: float | None, width: int, height: int) -> np.ndarray:
+    """3x3 intrinsics from ``"fx,fy,cx,cy"`` or a horizontal field of view in degrees."""
+    if intrinsics:
+        try:
+            fx, fy, cx, cy = (float(v) for v in intrinsics.split(","))
+        except ValueError:
+            raise InputsError(f"--intrinsics must be fx,fy,cx,cy (pixels), got {intrinsics!r}") from None
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    if fov:
+        return intrinsics_from_fov(fov, width, height)
+    raise InputsError("a video directory needs --intrinsics fx,fy,cx,cy or --fov DEGREES")
