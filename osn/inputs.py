@@ -95,6 +95,13 @@ class SceneInputs:
     def num_objects(self) -> int:
         return len(self.objects)
 
+    def object(self, object_id: int) -> ObjectInputs:
+        """The inputs of object ``object_id`` (ids index the masks; dropped objects are absent)."""
+        for o in self.objects:
+            if o.id == object_id:
+                return o
+        raise InputsError(f"no inputs for object {object_id}")
+
     def scale_ranges(self) -> np.ndarray:
         """``(K, 2)`` de-normalised scale range ``[sbar(0), sbar(1)]`` of every object (Eq. 1)."""
         return np.array([scale_range(self.scene_near, self.scene_far, o.near, o.far) for o in self.objects])
