@@ -1,0 +1,86 @@
+"""The object scale network: validity score of a normalised scale vector (paper section 3.2).
+
+Input: the K-1 normalised scales ``s`` in [0, 1) of every object but the anchor (fixed at
+``sbar = 1`` and left out). Output: one logit; ``sigmoid`` of it is the validity score. Trained
+with ``BCEWithLogits`` (never BCE on probabilities). Eq. 1 maps ``s`` to ``sbar``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import nn
+
+from .inputs import denormalise_scales
+
+log = logging.getLogger(__name__)
+
+
+class ScaleNet(nn.Module):
+    """MLP with ``layers`` hidden layers of ``width`` (paper: 4 x 64) and a validity logit."""
+
+    def __init__(self, num_free: int, width: int = 64, layers: int = 4, seed: int = 0) -> None:
+        super().__init__()
+        if num_free < 1:
+            raise ValueError("the scale network needs at least one non-anchor object")
+        self.num_free = num_free
+        dims = [num_free] + [width] * layers
+        mods: list[nn.Module] = []
+        for a, b in zip(dims[:-1], dims[1:]):
+            mods += [nn.Linear(a, b), nn.ReLU()]
+        mods.append(nn.Linear(width, 1))
+        self.mlp = nn.Sequential(*mods)
+        g = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            for m in self.mlp:
+                if isinstance(m, nn.Linear):
+                    bound = (6.0 / m.in_features) ** 0.5 / 2
+                    m.weight.uniform_(-bound, bound, generator=g)
+                    m.bias.zero_()
+
+    def forward(self, s: torch.Tensor) -> torch.Tensor:
+        """Logits ``(N,)`` of normalised free scales ``s (N, K-1)``; inputs centred to [-1, 1)."""
+        return self.mlp(s * 2.0 - 1.0)[:, 0]
+
+    def prob(self, s: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self(s))
+
+
+def full_sbar(s_free: torch.Tensor, ranges: torch.Tensor, anchor: int) -> torch.Tensor:
+    """De-normalised ``(N, K)`` scale vectors from free normalised scales ``(N, K-1)``; anchor = 1."""
+    K = ranges.shape[0]
+    free = [k for k in range(K) if k != anchor]
+    out = torch.ones(s_free.shape[0], K, dtype=ranges.dtype, device=s_free.device)
+    out[:, free] = denormalise_scales(s_free.to(ranges.dtype), ranges[free])
+    return out
+
+
+def sample_valid(
+    net: ScaleNet,
+    ranges: torch.Tensor,
+    anchor: int,
+    generator: torch.Generator,
+    candidates: int = 256,
+    threshold: float = 0.95,
+) -> tuple[torch.Tensor, torch.Tensor, float, bool]:
+    """Draw one scale vector the network deems valid (score > ``threshold``).
+
+    Uniform candidates in [0, 1)^(K-1); one of those above the threshold is picked uniformly.
+    When none passes, the best-scoring candidate is used and a warning is logged: this never
+    raises. Returns ``(sbar (K,), s_free (K-1,), score, fell_back)``.
+    """
+    dev = ranges.device
+    s = torch.rand(candidates, net.num_free, generator=generator, device=generator.device).to(dev)
+    with torch.no_grad():
+        p = net.prob(s)
+    ok = torch.nonzero(p > threshold)[:, 0]
+    if len(ok):
+        i = ok[torch.randint(len(ok), (1,), generator=generator, device=generator.device).to(dev)][0]
+        fell_back = False
+    else:
+        i = torch.argmax(p)
+        fell_back = True
+        log.warning("no sampled scale vector scored above %.3g (best %.3g): using the best one", threshold, float(p[i]))
+    s_i = s[i : i + 1]
+    return full_sbar(s_i, ranges, anchor)[0], s_i[0], float(p[i]), fell_back
