@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Sequence
 
-from .cliutil import run_cli, subcommand
+from .cliutil import UserError, run_cli, subcommand
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -22,6 +22,53 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_spec(args: argparse.Namespace):
+    from .spec import load_preset, load_spec
+
+    if (args.preset is None) == (args.spec is None):
+        raise UserError("give exactly one of --preset NAME or --spec FILE")
+    spec = load_preset(args.preset) if args.preset else load_spec(args.spec)
+    return spec.with_overrides(resolution=args.resolution, samples=args.samples, configs=args.configs, seed=args.seed)
+
+
+def _report(summary) -> int:
+    for line in summary.lines():
+        print(line)
+    return 0 if summary.passed else 1
+
+
+def _cmd_generate(args: argparse.Namespace) -> int:
+    from .generate import generate
+
+    spec = _load_spec(args)
+    return _report(generate(spec, args.out, args.workers, args.executor, args.address, progress=not args.quiet))
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from .generate import verify_dataset
+
+    return _report(verify_dataset(args.dataset, args.workers, args.executor, args.address, progress=not args.quiet))
+
+
+def _cmd_presets(args: argparse.Namespace) -> int:
+    from .spec import PRESET_DIR, load_preset, preset_names
+
+    for name in preset_names():
+        s = load_preset(name)
+        print(
+            f"{name:12s} {len(s.objects)} objects, {s.rig.views} views x {s.rig.times} times, "
+            f"{s.width}x{s.height}, {s.samples} spp, G={s.configs}  ({PRESET_DIR / (name + '.yaml')})"
+        )
+    return 0
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=int, default=1, help="number of rendering processes (or Ray actors), each holding one Blender scene")
+    p.add_argument("--executor", choices=("local", "ray"), default="local", help="run workers as local processes or as Ray actors (needs the 'ray' extra and a shared file system)")
+    p.add_argument("--address", default=None, help="Ray cluster address for --executor ray (default: start a local Ray instance)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="benchgen",
@@ -32,6 +79,30 @@ def build_parser() -> argparse.ArgumentParser:
     p = subcommand(sub, "validate", _cmd_validate, "check a dataset directory against the format (docs/dataset-format.md)")
     p.add_argument("dataset", help="dataset directory")
     p.add_argument("--manifest-only", action="store_true", help="check JSON files only, not every image")
+    p = subcommand(
+        sub, "generate", _cmd_generate, "render a multi-ground-truth dataset from a preset or a spec file",
+        "Render the training video, the exact valid-scale region, G ground-truth configurations and their test "
+        "views, then verify every configuration. Rerunning the same command resumes: only missing files are rendered. "
+        "Exit code 0: all configurations verified; 1: a verification failed; 2: bad input.",
+    )
+    src = p.add_argument_group("scene (one of)")
+    src.add_argument("--preset", help="a built-in spec (see 'benchgen presets')")
+    src.add_argument("--spec", help="a YAML spec file (docs/benchgen.md)")
+    p.add_argument("--out", required=True, help="output dataset directory (created; resumed if it holds the same spec)")
+    p.add_argument("--resolution", type=int, default=None, help="square image size in pixels (default: the spec's)")
+    p.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: the spec's)")
+    p.add_argument("--configs", type=int, default=None, help="number G of ground-truth configurations (default: the spec's)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the configuration sampler and the renderer (default: the spec's)")
+    _add_run_options(p)
+    p = subcommand(
+        sub, "verify", _cmd_verify, "re-render every configuration's training frames and check invariance",
+        "Rebuild the scene from DATASET/spec.yaml, re-render each configuration's training frames and compare them with "
+        "the training video, compare its test views with configuration 000's, write verification.json. "
+        "Exit code 1 names the failing configuration and frame.",
+    )
+    p.add_argument("dataset", help="dataset directory written by 'benchgen generate'")
+    _add_run_options(p)
+    subcommand(sub, "presets", _cmd_presets, "list the built-in scene specs")
     return parser
 
 

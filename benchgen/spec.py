@@ -1,0 +1,365 @@
+"""Scene specs: the YAML files users write and the presets ship (pure Python + numpy).
+
+A spec describes a room (the anchor), rigid foreground objects made of procedural primitive parts
+or a mesh file, their keyframed motion, object-space textures, the camera rig and the render and
+benchmark settings. ``load_spec`` checks everything that can be checked without geometry and
+raises ``SpecError`` with one line naming the file and the field. See docs/benchgen.md.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PRESET_DIR = Path(__file__).parent / "presets"
+
+#: Primitive part types and their size parameters (all in metres, in the part's own frame).
+PART_PARAMS: dict[str, tuple[str, ...]] = {
+    "box": ("size",),
+    "sphere": ("radius",),
+    "cylinder": ("radius", "height"),
+    "cone": ("radius", "height"),
+    "torus": ("major_radius", "minor_radius"),
+}
+TEXTURE_KINDS = ("noise", "checker", "voronoi")
+TRAIN_PATHS = ("diagonal", "sweep")
+
+
+class SpecError(ValueError):
+    """A spec is invalid. The message is one line: ``FILE: field: problem``."""
+
+
+@dataclass
+class Texture:
+    """Object-space procedural texture: ``kind`` pattern between two colours (linear RGB)."""
+
+    kind: str = "noise"
+    colors: list[list[float]] = field(default_factory=lambda: [[0.8, 0.3, 0.2], [0.15, 0.1, 0.6]])
+    scale: float = 4.0
+    seed: int | None = None
+
+
+@dataclass
+class Part:
+    """A primitive placed in its object's frame (rotation: XYZ Euler angles in degrees)."""
+
+    type: str
+    params: dict[str, Any]
+    location: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rotation: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+@dataclass
+class Keyframe:
+    """Object pose at normalised time ``t``: translation and XYZ Euler rotation in degrees."""
+
+    t: float
+    location: list[float]
+    rotation: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+@dataclass
+class ObjectSpec:
+    name: str
+    parts: list[Part]
+    mesh: str | None
+    mesh_scale: float
+    texture: Texture
+    keyframes: list[Keyframe]
+
+
+@dataclass
+class RoomSpec:
+    """Closed box room ``[-x/2, x/2] x [-y/2, y/2] x [0, z]``; textures for floor and walls."""
+
+    size: list[float]
+    floor: Texture
+    walls: Texture
+
+
+@dataclass
+class RigSpec:
+    """``views`` cameras on a horizontal arc around ``target`` x ``times`` timestamps.
+
+    Viewpoint v sits at angle ``arc[0] + v (arc[1] - arc[0]) / (views - 1)`` degrees (0 = -y
+    axis, counter-clockwise), at ``radius`` from the target and height ``height``. The training
+    camera at timestamp t is viewpoint ``t % views`` (``diagonal``) or
+    ``round(t (views - 1) / (times - 1))`` (``sweep``: one pass along the arc).
+    """
+
+    views: int = 15
+    times: int = 15
+    fov: float = 60.0
+    radius: float = 2.6
+    height: float = 1.5
+    arc: list[float] = field(default_factory=lambda: [-40.0, 40.0])
+    target: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.6])
+    train_path: str = "diagonal"
+
+    def train_view(self, t: int) -> int:
+        if self.train_path == "diagonal":
+            return t % self.views
+        return 0 if self.times == 1 else round(t * (self.views - 1) / (self.times - 1))
+
+
+@dataclass
+class SceneSpec:
+    name: str
+    room: RoomSpec
+    objects: list[ObjectSpec]
+    rig: RigSpec
+    resolution: list[int] = field(default_factory=lambda: [128, 128])
+    samples: int = 16
+    configs: int = 50
+    margin: float = 0.05
+    scale_range: list[float] = field(default_factory=lambda: [0.3, 3.0])
+    candidates: int = 4000
+    seed: int = 0
+    source: str = "<spec>"
+
+    @property
+    def width(self) -> int:
+        return self.resolution[0]
+
+    @property
+    def height(self) -> int:
+        return self.resolution[1]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (round-trips through ``spec_from_dict``); mesh paths are absolute."""
+        d = asdict(self)
+        d.pop("source")
+        for o, od in zip(self.objects, d["objects"]):
+            od["motion"] = od.pop("keyframes")
+            od["parts"] = [{"type": p.type, **p.params, "location": p.location, "rotation": p.rotation} for p in o.parts] or None
+            for k in ("parts", "mesh"):
+                if od[k] is None:
+                    del od[k]
+        return d
+
+    def with_overrides(self, **kw: Any) -> "SceneSpec":
+        """Copy with top-level settings replaced (``None`` values are ignored); re-checked."""
+        d = self.to_dict()
+        for k, v in kw.items():
+            if v is None:
+                continue
+            if k == "resolution" and isinstance(v, int):
+                v = [v, v]
+            d[k] = v
+        return spec_from_dict(d, self.source)
+
+
+# --------------------------------------------------------------------------------------------
+# Parsing helpers: every error names the file and the field path.
+# --------------------------------------------------------------------------------------------
+
+
+class _Ctx:
+    def __init__(self, source: str, base_dir: Path):
+        self.source = source
+        self.base_dir = base_dir
+
+    def fail(self, where: str, msg: str) -> SpecError:
+        return SpecError(f"{self.source}: {where}: {msg}")
+
+    def mapping(self, d: Any, where: str, allowed: set[str]) -> dict[str, Any]:
+        if not isinstance(d, dict):
+            raise self.fail(where, f"expected a mapping, got {type(d).__name__}")
+        unknown = sorted(set(d) - allowed)
+        if unknown:
+            raise self.fail(f"{where}.{unknown[0]}" if where else unknown[0], f"unknown field (allowed: {', '.join(sorted(allowed))})")
+        return d
+
+    def number(self, v: Any, where: str, lo: float | None = None, hi: float | None = None, strict_lo: bool = False) -> float:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.fail(where, f"expected a number, got {v!r}")
+        v = float(v)
+        if lo is not None and (v < lo or (strict_lo and v == lo)):
+            raise self.fail(where, f"must be {'>' if strict_lo else '>='} {lo}, got {v}")
+        if hi is not None and v > hi:
+            raise self.fail(where, f"must be <= {hi}, got {v}")
+        return v
+
+    def integer(self, v: Any, where: str, lo: int) -> int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(where, f"expected an integer, got {v!r}")
+        if v < lo:
+            raise self.fail(where, f"must be >= {lo}, got {v}")
+        return v
+
+    def vector(self, v: Any, where: str, n: int, positive: bool = False) -> list[float]:
+        if not isinstance(v, (list, tuple)) or len(v) != n:
+            raise self.fail(where, f"expected a list of {n} numbers, got {v!r}")
+        return [self.number(x, f"{where}[{i}]", lo=0.0 if positive else None, strict_lo=positive) for i, x in enumerate(v)]
+
+
+def _texture(c: _Ctx, d: Any, where: str, default_colors: list[list[float]] | None = None) -> Texture:
+    d = c.mapping(d or {}, where, {"kind", "colors", "scale", "seed"})
+    kind = d.get("kind", "noise")
+    if kind not in TEXTURE_KINDS:
+        raise c.fail(f"{where}.kind", f"unknown texture kind {kind!r} (expected one of {', '.join(TEXTURE_KINDS)})")
+    colors = d.get("colors", default_colors or Texture().colors)
+    if not isinstance(colors, list) or len(colors) != 2:
+        raise c.fail(f"{where}.colors", "expected two RGB colours")
+    colors = [[c.number(x, f"{where}.colors[{i}][{j}]", 0.0, 1.0) for j, x in enumerate(c.vector(col, f"{where}.colors[{i}]", 3))] for i, col in enumerate(colors)]
+    seed = d.get("seed")
+    if seed is not None:
+        seed = c.integer(seed, f"{where}.seed", 0)
+    return Texture(kind, colors, c.number(d.get("scale", 4.0), f"{where}.scale", 0.0, strict_lo=True), seed)
+
+
+def _part(c: _Ctx, d: Any, where: str) -> Part:
+    if not isinstance(d, dict):
+        raise c.fail(where, "expected a mapping")
+    ptype = d.get("type")
+    if ptype not in PART_PARAMS:
+        raise c.fail(f"{where}.type", f"unknown object type {ptype!r} (expected one of {', '.join(PART_PARAMS)})")
+    params = PART_PARAMS[ptype]
+    c.mapping(d, where, {"type", "location", "rotation", *params})
+    values: dict[str, Any] = {}
+    for p in params:
+        if p not in d:
+            raise c.fail(f"{where}.{p}", f"missing (a {ptype} needs {', '.join(params)})")
+        values[p] = c.vector(d[p], f"{where}.{p}", 3, positive=True) if p == "size" else c.number(d[p], f"{where}.{p}", 0.0, strict_lo=True)
+    if ptype == "torus" and values["minor_radius"] >= values["major_radius"]:
+        raise c.fail(f"{where}.minor_radius", "must be smaller than major_radius")
+    return Part(ptype, values, c.vector(d.get("location", [0, 0, 0]), f"{where}.location", 3), c.vector(d.get("rotation", [0, 0, 0]), f"{where}.rotation", 3))
+
+
+def _object(c: _Ctx, d: Any, where: str, index: int) -> ObjectSpec:
+    d = c.mapping(d, where, {"name", "parts", "mesh", "mesh_scale", "texture", "motion"})
+    name = d.get("name")
+    if not isinstance(name, str) or not name:
+        raise c.fail(f"{where}.name", "missing or not a string")
+    where = f"objects[{index}] ({name})"
+    parts_d, mesh = d.get("parts"), d.get("mesh")
+    if (parts_d is None) == (mesh is None):
+        raise c.fail(where, "give exactly one of 'parts' (primitives) or 'mesh' (a file trimesh can load)")
+    parts: list[Part] = []
+    if parts_d is not None:
+        if not isinstance(parts_d, list) or not parts_d:
+            raise c.fail(f"{where}.parts", "expected a non-empty list")
+        parts = [_part(c, p, f"{where}.parts[{i}]") for i, p in enumerate(parts_d)]
+    if mesh is not None:
+        path = Path(mesh)
+        path = path if path.is_absolute() else c.base_dir / path
+        if not path.is_file():
+            raise c.fail(f"{where}.mesh", f"mesh file {str(path)!r} not found")
+        mesh = str(path.resolve())
+    motion = d.get("motion")
+    if not isinstance(motion, list) or not motion:
+        raise c.fail(f"{where}.motion", "expected a non-empty list of keyframes {t, location, rotation}")
+    keys = []
+    for i, k in enumerate(motion):
+        kw = f"{where}.motion[{i}]"
+        k = c.mapping(k, kw, {"t", "location", "rotation"})
+        if "t" not in k or "location" not in k:
+            raise c.fail(kw, "a keyframe needs 't' and 'location'")
+        keys.append(Keyframe(c.number(k["t"], f"{kw}.t", 0.0, 1.0), c.vector(k["location"], f"{kw}.location", 3), c.vector(k.get("rotation", [0, 0, 0]), f"{kw}.rotation", 3)))
+    ts = [k.t for k in keys]
+    if any(b <= a for a, b in zip(ts, ts[1:])):
+        raise c.fail(f"{where}.motion", f"keyframe times must strictly increase, got {ts}")
+    return ObjectSpec(name, parts, mesh, c.number(d.get("mesh_scale", 1.0), f"{where}.mesh_scale", 0.0, strict_lo=True), _texture(c, d.get("texture"), f"{where}.texture"), keys)
+
+
+TOP_FIELDS = {"name", "room", "objects", "rig", "resolution", "samples", "configs", "margin", "scale_range", "candidates", "seed"}
+
+
+def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None) -> SceneSpec:
+    """Build and check a ``SceneSpec`` from plain data; ``SpecError`` names ``source`` and the field."""
+    c = _Ctx(source, base_dir or Path.cwd())
+    d = c.mapping(d, "", TOP_FIELDS)
+    for req in ("room", "objects"):
+        if req not in d:
+            raise c.fail(req, "missing")
+    room_d = c.mapping(d["room"], "room", {"size", "floor", "walls"})
+    if "size" not in room_d:
+        raise c.fail("room.size", "missing")
+    room = RoomSpec(
+        c.vector(room_d["size"], "room.size", 3, positive=True),
+        _texture(c, room_d.get("floor"), "room.floor", [[0.75, 0.7, 0.6], [0.3, 0.25, 0.2]]),
+        _texture(c, room_d.get("walls"), "room.walls", [[0.6, 0.7, 0.75], [0.2, 0.3, 0.35]]),
+    )
+    objs_d = d["objects"]
+    if not isinstance(objs_d, list) or not objs_d:
+        raise c.fail("objects", "expected a non-empty list")
+    if len(objs_d) > 254:
+        raise c.fail("objects", f"{len(objs_d)} objects; at most 254 fit in 8-bit ids with the room")
+    objects = [_object(c, o, f"objects[{i}]", i) for i, o in enumerate(objs_d)]
+    names = [o.name for o in objects]
+    dup = sorted({n for n in names if names.count(n) > 1} | ({"room"} & set(names)))
+    if dup:
+        raise c.fail("objects", f"duplicate or reserved object name {dup[0]!r}")
+    rd = c.mapping(d.get("rig", {}), "rig", set(RigSpec.__dataclass_fields__))
+    r = RigSpec()
+    rig = RigSpec(
+        views=c.integer(rd.get("views", r.views), "rig.views", 1),
+        times=c.integer(rd.get("times", r.times), "rig.times", 1),
+        fov=c.number(rd.get("fov", r.fov), "rig.fov", 1.0, 170.0),
+        radius=c.number(rd.get("radius", r.radius), "rig.radius", 0.0, strict_lo=True),
+        height=c.number(rd.get("height", r.height), "rig.height"),
+        arc=c.vector(rd.get("arc", r.arc), "rig.arc", 2),
+        target=c.vector(rd.get("target", r.target), "rig.target", 3),
+        train_path=rd.get("train_path", r.train_path),
+    )
+    if rig.train_path not in TRAIN_PATHS:
+        raise c.fail("rig.train_path", f"unknown path {rig.train_path!r} (expected one of {', '.join(TRAIN_PATHS)})")
+    if rig.views * rig.times < 2:
+        raise c.fail("rig", "needs at least 2 (view, time) pairs so that there is a test view")
+    res = d.get("resolution", [128, 128])
+    res = [res, res] if isinstance(res, int) and not isinstance(res, bool) else res
+    if not isinstance(res, list) or len(res) != 2:
+        raise c.fail("resolution", f"expected an integer or [width, height], got {res!r}")
+    res = [c.integer(x, f"resolution[{i}]", 4) for i, x in enumerate(res)]
+    scale_range = c.vector(d.get("scale_range", [0.3, 3.0]), "scale_range", 2, positive=True)
+    if not scale_range[0] < 1.0 < scale_range[1]:
+        raise c.fail("scale_range", f"must contain 1 strictly inside, got {scale_range}")
+    spec = SceneSpec(
+        name=str(d.get("name", Path(source).stem)),
+        room=room,
+        objects=objects,
+        rig=rig,
+        resolution=res,
+        samples=c.integer(d.get("samples", 16), "samples", 1),
+        configs=c.integer(d.get("configs", 50), "configs", 1),
+        margin=c.number(d.get("margin", 0.05), "margin", 0.0),
+        scale_range=scale_range,
+        candidates=c.integer(d.get("candidates", 4000), "candidates", 1),
+        seed=c.integer(d.get("seed", 0), "seed", 0),
+        source=source,
+    )
+    if spec.candidates < spec.configs:
+        raise c.fail("candidates", f"{spec.candidates} candidates cannot give {spec.configs} configurations")
+    return spec
+
+
+def load_spec(path: str | Path) -> SceneSpec:
+    """Load and check a spec file (relative mesh paths are resolved against its directory)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"{path}: spec file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise SpecError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    return spec_from_dict(data, str(path), path.parent)
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+
+
+def load_preset(name: str) -> SceneSpec:
+    path = PRESET_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise SpecError(f"unknown preset {name!r} (available: {', '.join(preset_names())})")
+    return load_spec(path)
+
+
+def dump_spec(spec: SceneSpec) -> str:
+    """YAML text of a spec (what ``spec.yaml`` in a dataset holds)."""
+    return yaml.safe_dump(copy.deepcopy(spec.to_dict()), sort_keys=False)

@@ -1,0 +1,200 @@
+"""benchgen end to end with real Cycles renders of the ``tiny`` preset (a few seconds each)."""
+
+from __future__ import annotations
+
+import filecmp
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from benchgen import dataset as D
+from benchgen.cameras import pixel_rays
+from benchgen.cli import main as cli_main
+from benchgen.generate import Worker, generate, prepare, verify_dataset
+from benchgen.plausibility import PlausibilityChecker, room_scale_limits
+from benchgen.spec import PRESET_DIR, SpecError, load_preset, load_spec, spec_from_dict
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("tiny") / "ds"
+    summary = generate(load_preset("tiny"), root, progress=False)
+    assert summary.passed, summary.lines()
+    return root
+
+
+@pytest.fixture(scope="module")
+def worker(tiny) -> Worker:
+    spec = load_spec(tiny / "spec.yaml")
+    return Worker(spec.to_dict(), spec.source, str(tiny))
+
+
+def _tree(root: Path) -> list[Path]:
+    return sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
+
+
+def _assert_same_tree(a: Path, b: Path) -> None:
+    files = _tree(a)
+    assert files == _tree(b)
+    _, mismatch, errors = filecmp.cmpfiles(a, b, [str(f) for f in files], shallow=False)
+    assert not mismatch and not errors, mismatch[:5]
+
+
+def test_validator_accepts_output(tiny):
+    assert D.validate(tiny) == []
+    scene = D.load_scene(tiny)
+    assert len(scene.train_frames) == 3 and len(scene.test_frames) == 9 and scene.num_configurations == 3
+
+
+def test_every_configuration_reproduces_training_video(tiny, worker):
+    ver = D.load_verification(tiny)
+    assert ver["passed"] and len(ver["configurations"]) == 3
+    scene = D.load_scene(tiny)
+    for cfg in D.load_configurations(tiny, scene):
+        assert not np.allclose(cfg.scales[1:], 1.0) or cfg.index == 0
+        for f in scene.train_frames:
+            out = worker.renderer.render(f.camera_to_world, worker.built.poses(f.time_index, cfg.scales))
+            rgb, _, ids = D.read_frame(tiny, f.name)
+            np.testing.assert_array_equal(out.ids, ids)
+            assert np.mean(out.rgb8() != rgb) < 0.005
+    # Test views of different configurations are different scenes.
+    name = scene.test_frames[0].name
+    assert not np.array_equal(D.read_frame(tiny, name, 0)[1], D.read_frame(tiny, name, 1)[1])
+
+
+def test_bounds_are_tight(tiny, worker):
+    """Scaling one object just below its bound keeps every id; just above flips at least one."""
+    region = D.load_valid_region(tiny)
+    scene = D.load_scene(tiny)
+    train = [(f, D.read_frame(tiny, f.name)[2]) for f in scene.train_frames]
+    checked = 0
+    for k in range(1, scene.num_objects):
+        bound = np.min(np.delete(region.ratio_bounds[k], k))
+        if not np.isfinite(bound):
+            continue
+        for factor, expect_same in ((1 - 1e-3, True), (1 + 1e-3, False)):
+            s = np.ones(scene.num_objects)
+            s[k] = bound * factor
+            assert bool(region.contains(s)) == expect_same
+            same = all(
+                np.array_equal(worker.renderer.render(f.camera_to_world, worker.built.poses(f.time_index, s), 1).ids, ids)
+                for f, ids in train
+            )
+            assert same == expect_same, (k, factor)
+        checked += 1
+    assert checked >= 1
+
+
+def test_depth_matches_camera_conventions(tiny):
+    """Back-projected room pixels land on the room's walls: intrinsics, pose and planar depth agree."""
+    scene = D.load_scene(tiny)
+    spec = load_spec(tiny / "spec.yaml")
+    sx, sy, sz = spec.room.size
+    for f in scene.train_frames:
+        _, depth, ids = D.read_frame(tiny, f.name)
+        o, d = pixel_rays(scene.intrinsics.matrix(), f.camera_to_world, scene.width, scene.height)
+        room = (ids == 0).reshape(-1)
+        p = o[room] + depth.reshape(-1)[room, None] * d[room]
+        gap = np.min(np.abs(np.stack([p[:, 0] - sx / 2, p[:, 0] + sx / 2, p[:, 1] - sy / 2, p[:, 1] + sy / 2, p[:, 2], p[:, 2] - sz], 1)), 1)
+        assert room.sum() > 100 and gap.max() < 1e-3
+
+
+def test_configurations_are_plausible_and_spread(tiny):
+    spec = load_spec(tiny / "spec.yaml")
+    built, limits = prepare(spec)
+    checker = PlausibilityChecker(built)
+    cfgs = np.stack([c.scales for c in D.load_configurations(tiny)])
+    assert all(checker.problem(s) is None for s in cfgs)
+    assert np.all(cfgs <= limits + 1e-12)
+    x = np.log(cfgs)
+    assert min(np.linalg.norm(x[i] - x[j]) for i in range(3) for j in range(i)) > 0.3
+    too_big = np.ones(len(limits))
+    too_big[1] = limits[1] * 1.01
+    assert room_scale_limits(built)[1] == limits[1] and too_big[1] > limits[1]
+
+
+def test_deterministic_and_resumable(tiny, tmp_path):
+    # Determinism: a second generation is byte-identical.
+    again = tmp_path / "again"
+    generate(load_preset("tiny"), again, progress=False)
+    _assert_same_tree(tiny, again)
+    # Resume after losing files mid-run (a killed run leaves whole files only: writes are atomic).
+    for p in [D.frame_paths(again, "v00_t01", 2).rgb, D.frame_paths(again, "v00_t00").depth, again / "valid_region.json",
+              again / "verification.json", again / ".benchgen" / "verify" / "001.json"]:
+        p.unlink()
+    shutil.rmtree(again / "configs" / "001" / "depth")
+    summary = generate(load_preset("tiny"), again, progress=False)
+    assert summary.frames_rendered > 0
+    _assert_same_tree(tiny, again)
+
+
+def test_resume_after_killing_parallel_run(tiny, tmp_path):
+    out = tmp_path / "killed"
+    spec = load_preset("tiny").with_overrides(configs=3)
+    cmd = [sys.executable, "-m", "benchgen.cli", "generate", "--preset", "tiny", "--out", str(out), "--workers", "2", "--quiet"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 60
+    while time.time() < deadline and not list((out / "configs").glob("*/rgb/*.png")):
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (out / "verification.json").exists()
+    generate(spec, out, workers=1, progress=False)
+    _assert_same_tree(tiny, out)
+
+
+BAD_SPECS = [
+    (lambda d: d["objects"][0]["parts"][0].update(type="pyramid"), "objects[0] (ball).parts[0].type: unknown object type 'pyramid'"),
+    (lambda d: d["objects"][0].pop("parts") and d["objects"][0].update(mesh="nowhere.obj"), "objects[0] (ball).mesh: mesh file"),
+    (lambda d: d["objects"][0]["motion"].append({"t": 0.5, "location": [0, 0, 1]}), "keyframe times must strictly increase"),
+    (lambda d: d["objects"][1]["motion"][0].update(location=[-0.5, 0.2, 0.6]), "intersect at time index 0"),
+    (lambda d: d["objects"][0]["motion"][0].update(location=[-0.8, -1.09, 1.3]), "inside object 'ball'"),
+    (lambda d: d["objects"][0]["motion"][0].update(location=[0.0, 0.0, 2.4]), "'ball' pokes out of the room"),
+    (lambda d: d.update(margin=3.0), "no room for a log margin of 3.0"),
+    (lambda d: d.update(colour=1), "colour: unknown field"),
+]
+
+
+@pytest.mark.parametrize("mutate,message", BAD_SPECS)
+def test_bad_specs_are_rejected_before_rendering(tmp_path, capsys, mutate, message):
+    d = yaml.safe_load((PRESET_DIR / "tiny.yaml").read_text())
+    mutate(d)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(d))
+    out = tmp_path / "out"
+    assert cli_main(["generate", "--spec", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(path) in err and len(err.strip().splitlines()) == 1
+    assert not (out / "configs").exists()
+
+
+def test_spec_round_trip_and_overrides():
+    spec = load_preset("tiny")
+    again = spec_from_dict(spec.to_dict(), "x")
+    assert again.to_dict() == spec.to_dict()
+    assert spec.with_overrides(resolution=64, configs=7).resolution == [64, 64]
+    with pytest.raises(SpecError, match="resolution"):
+        spec.with_overrides(resolution=2)
+
+
+def test_verify_detects_a_broken_configuration(tiny, tmp_path, capsys):
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny, broken)
+    region = D.load_valid_region(broken)
+    scales = np.ones(region.num_objects)
+    scales[1] = region.intervals[1, 1] * 1.5  # far outside: some training id must change
+    D.write_configuration(broken, D.Configuration(2, scales))
+    assert cli_main(["verify", str(broken), "--quiet"]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED configuration 002" in out and "training frame v" in out
+    assert verify_dataset(tiny, progress=False).passed
