@@ -1,0 +1,383 @@
+"""Build and update the Blender scene of an OSN export (bpy; Blender 4.2 to 5.0).
+
+Layout of an imported export: a collection ``OSN <name>`` holding, per learned object, an empty
+``<name>`` that carries the keyed trajectory and the scale slider, parented to it a volume object
+(the learned grids, emission-absorption material) and a mesh object (marching-cubes surface,
+vertex-colour emission material); plus the training camera and the test-rig cameras, keyed per
+frame. Everything the add-on needs later (base poses, camera centres, the scale network, the
+sampled configurations) is stored as ID properties, so a saved .blend works without the export.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from . import osn_core as core
+
+#: Layered actions (slot -> layer -> strip -> channelbag) replace ``Action.fcurves`` from 4.4 on.
+LAYERED_ACTIONS = bpy.app.version >= (4, 4, 0)
+#: Custom property names (kept short and prefixed so they never clash with a user's).
+P_SCALE, P_KEYED, P_INV, P_INDEX = "osn_scale", "osn_keyed_scale", "osn_inv_scale", "osn_index"
+P_BASE, P_FRAMES, P_MANIFEST, P_CENTRES = "osn_base_pose", "osn_frames", "osn_manifest", "osn_camera_centres"
+P_SAMPLES = "osn_samples"
+_INTERP_LINEAR = 1  # keyframe interpolation enum index: CONSTANT 0, LINEAR 1, BEZIER 2
+
+
+# --------------------------------------------------------------------------------------------
+# Keyframes
+# --------------------------------------------------------------------------------------------
+
+
+def _fcurve_collection(obj: bpy.types.Object, create: bool) -> Any:
+    """The F-curve collection animating ``obj`` (its slot's channelbag on 4.4+, the action on 4.2)."""
+    ad = obj.animation_data or (obj.animation_data_create() if create else None)
+    if ad is None:
+        return None
+    if ad.action is None:
+        if not create:
+            return None
+        ad.action = bpy.data.actions.new(f"{obj.name} OSN")
+    action = ad.action
+    if not LAYERED_ACTIONS:
+        return action.fcurves
+    if ad.action_slot is None:
+        ad.action_slot = action.slots.new(id_type="OBJECT", name=obj.name)
+    layer = action.layers[0] if action.layers else action.layers.new("Layer")
+    strip = layer.strips[0] if layer.strips else layer.strips.new(type="KEYFRAME")
+    return strip.channelbag(ad.action_slot, ensure=True).fcurves
+
+
+def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray) -> None:
+    """Key ``obj``'s location, quaternion and scale to ``matrices (F, 4, 4)`` at Blender ``frames``.
+
+    Writes whole F-curves with ``foreach_set`` (one call per channel, ~40x faster than
+    ``keyframe_insert``); existing curves are overwritten in place, so re-keying keeps the action.
+    """
+    obj.rotation_mode = "QUATERNION"
+    loc, quat, scl = np.zeros((len(frames), 3)), np.zeros((len(frames), 4)), np.zeros((len(frames), 3))
+    prev = None
+    for i, M in enumerate(matrices):
+        t, q, s = Matrix(M.tolist()).decompose()
+        if prev is not None:
+            q.make_compatible(prev)  # shortest-path interpolation between keys
+        prev = q
+        loc[i], quat[i], scl[i] = t, q, s
+    fcurves = _fcurve_collection(obj, create=True)
+    f = np.asarray(frames, dtype=np.float64)
+    for path, values in (("location", loc), ("rotation_quaternion", quat), ("scale", scl)):
+        for idx in range(values.shape[1]):
+            fc = fcurves.find(path, index=idx) or fcurves.new(path, index=idx, **({} if LAYERED_ACTIONS else {"action_group": "Object Transforms"}))
+            kp = fc.keyframe_points
+            if len(kp) != len(f):
+                kp.clear()
+                kp.add(len(f))
+            co = np.empty(2 * len(f))
+            co[0::2], co[1::2] = f, values[:, idx]
+            kp.foreach_set("co", co)
+            kp.foreach_set("handle_left", co)
+            kp.foreach_set("handle_right", co)
+            kp.foreach_set("interpolation", np.full(len(f), _INTERP_LINEAR, dtype=np.int32))
+            fc.update()
+
+
+# --------------------------------------------------------------------------------------------
+# Materials
+# --------------------------------------------------------------------------------------------
+
+
+def _node_tree(mat: bpy.types.Material) -> bpy.types.NodeTree:
+    if mat.node_tree is None:  # Blender < 5.0 creates the tree on demand
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    return nt
+
+
+def volume_material(name: str) -> bpy.types.Material:
+    """Emission-absorption (the NeRF rendering model): absorption ``sigma`` and emission ``sigma * c``.
+
+    ``sigma`` is the ``density`` grid times the object's ``osn_inv_scale``: the grid is per
+    object unit, and an object scaled by ``s`` is ``s`` times longer along every ray, so the
+    optical depth, and with it the training-camera image, stays unchanged.
+    """
+    mat = bpy.data.materials.new(name)
+    nt = _node_tree(mat)
+    n, link = nt.nodes, nt.links.new
+    out = n.new("ShaderNodeOutputMaterial")
+    dens, col, inv = (n.new("ShaderNodeAttribute") for _ in range(3))
+    dens.attribute_name, col.attribute_name = "density", "color"
+    inv.attribute_type, inv.attribute_name = "OBJECT", P_INV
+    sigma = n.new("ShaderNodeMath")
+    sigma.operation = "MULTIPLY"
+    link(dens.outputs["Fac"], sigma.inputs[0])
+    link(inv.outputs["Fac"], sigma.inputs[1])
+    absorb, emit, add = n.new("ShaderNodeVolumeAbsorption"), n.new("ShaderNodeEmission"), n.new("ShaderNodeAddShader")
+    absorb.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)  # Cycles absorbs (1 - colour)
+    link(sigma.outputs[0], absorb.inputs["Density"])
+    link(col.outputs["Color"], emit.inputs["Color"])
+    link(sigma.outputs[0], emit.inputs["Strength"])
+    link(absorb.outputs[0], add.inputs[0])
+    link(emit.outputs[0], add.inputs[1])
+    link(add.outputs[0], out.inputs["Volume"])
+    return mat
+
+
+def mesh_material(name: str, attribute: str) -> bpy.types.Material:
+    """Emission of the vertex colours: unlit, so the image is invariant under configuration changes."""
+    mat = bpy.data.materials.new(name)
+    nt = _node_tree(mat)
+    vc, emit, out = nt.nodes.new("ShaderNodeVertexColor"), nt.nodes.new("ShaderNodeEmission"), nt.nodes.new("ShaderNodeOutputMaterial")
+    vc.layer_name = attribute
+    nt.links.new(vc.outputs["Color"], emit.inputs["Color"])
+    nt.links.new(emit.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+# --------------------------------------------------------------------------------------------
+# Import
+# --------------------------------------------------------------------------------------------
+
+
+class _Created:
+    """Every datablock made during an import, so a failure can remove them all (scene untouched)."""
+
+    def __init__(self) -> None:
+        self.ids: list[Any] = []
+
+    def add(self, idblock: Any) -> Any:
+        self.ids.append(idblock)
+        return idblock
+
+    def remove_all(self) -> None:
+        for idb in reversed(self.ids):
+            try:
+                idb.user_clear()
+                bpy.data.batch_remove([idb])
+            except ReferenceError:
+                pass  # already freed with its owner
+
+
+def _mesh_data(name: str, mesh: dict[str, np.ndarray]) -> bpy.types.Mesh:
+    me = bpy.data.meshes.new(name)
+    v, f = mesh["vertices"], mesh["faces"]
+    me.vertices.add(len(v))
+    me.vertices.foreach_set("co", v.astype(np.float32).ravel())
+    me.loops.add(3 * len(f))
+    me.loops.foreach_set("vertex_index", f.astype(np.int32).ravel())
+    me.polygons.add(len(f))
+    me.polygons.foreach_set("loop_start", np.arange(0, 3 * len(f), 3, dtype=np.int32))
+    me.update(calc_edges=True)
+    attr = me.color_attributes.new("Col", "BYTE_COLOR", "POINT")
+    # PLY colours are sRGB bytes; "color_srgb" lets Blender linearise them for shading.
+    attr.data.foreach_set("color_srgb", (mesh["colors"].astype(np.float32) / 255.0).ravel())
+    me.validate()
+    return me
+
+
+def _camera_data(name: str, data: core.ExportData) -> bpy.types.Camera:
+    """Pinhole camera matching pixel intrinsics ``K`` with the render size (square pixels)."""
+    cam = bpy.data.cameras.new(name)
+    W, H, K = data.width, data.height, data.K
+    cam.sensor_fit = "HORIZONTAL" if W >= H else "VERTICAL"
+    cam.sensor_width = cam.sensor_height = 36.0
+    size = max(W, H)
+    cam.lens = float(K[0, 0]) * cam.sensor_width / size
+    # Blender's shift is in units of the larger image side; +y is up in Blender, down in OpenCV.
+    cam.shift_x = (W / 2.0 - float(K[0, 2])) / size
+    cam.shift_y = (float(K[1, 2]) - H / 2.0) / size
+    cam.clip_start, cam.clip_end = 1e-3, 1e4
+    return cam
+
+
+def _check_volume(vol: bpy.types.Volume, path: str) -> None:
+    if not vol.grids.load():
+        raise core.ExportFormatError(f"{path}: Blender cannot load the volume ({vol.grids.error_message or 'unknown error'})")
+    names = {g.name for g in vol.grids}
+    if not {"density", "color"} <= names:
+        raise core.ExportFormatError(f"{path}: volume lacks grids 'density' and 'color' (has {sorted(names)})")
+
+
+def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection:
+    """Import the export at ``path`` (directory or manifest) into the scene; return its collection.
+
+    All-or-nothing: the export is fully validated (``osn_core.read_export``, then Blender loads
+    every volume) before anything is linked into the scene, and every datablock made is removed
+    again if any step fails; the exception propagates with a message naming the bad file.
+    """
+    data = core.read_export(path)
+    made = _Created()
+    scene = context.scene
+    try:
+        title = data.manifest.get("meta", {}).get("name") or "export"
+        coll = made.add(bpy.data.collections.new(f"OSN {title}"))
+        coll[P_MANIFEST] = json.dumps(data.manifest)
+        centres = data.camera_to_scene[:, :3, 3]
+        coll[P_CENTRES] = centres.ravel().tolist()
+        if data.net_layers is not None:
+            for i, (W, b) in enumerate(data.net_layers):
+                coll[f"osn_net_W{i}"] = W.ravel().tolist()
+                coll[f"osn_net_b{i}"] = b.ravel().tolist()
+        samples = data.samples if data.samples is not None else np.zeros((0, len(data.objects)))
+        coll[P_SAMPLES] = samples.ravel().tolist()
+        frames_all = np.arange(data.num_frames) + 1.0
+        vmat = made.add(volume_material("OSN volume"))
+        for i, o in enumerate(data.objects):
+            empty = made.add(bpy.data.objects.new(o.name, None))
+            empty.empty_display_type = "CUBE"
+            empty.empty_display_size = float(np.abs(o.bbox).max())
+            coll.objects.link(empty)
+            empty[P_INDEX] = i
+            empty[P_BASE] = o.object_to_scene.ravel().tolist()
+            empty[P_FRAMES] = o.frames.tolist()
+            empty[P_KEYED] = 1.0
+            if not o.is_anchor:
+                lo, hi = o.valid_interval
+                empty[P_SCALE] = float(np.clip(1.0, lo, hi))
+                ui = empty.id_properties_ui(P_SCALE)
+                ui.update(min=lo, max=hi, soft_min=lo, soft_max=hi, default=float(np.clip(1.0, lo, hi)),
+                          description=f"Actual scale of {o.name} (learned valid interval [{lo:.4g}, {hi:.4g}])")
+            vol = made.add(bpy.data.volumes.new(f"{o.name} volume"))
+            vol.filepath = o.volume_path
+            _check_volume(vol, o.volume_path)
+            vol.materials.append(vmat)
+            vobj = made.add(bpy.data.objects.new(f"{o.name} volume", vol))
+            vobj[P_INV] = 1.0
+            parts = [vobj]
+            if o.mesh is not None and len(o.mesh["faces"]):
+                me = made.add(_mesh_data(f"{o.name} mesh", o.mesh))
+                me.materials.append(made.add(mesh_material(f"OSN {o.name} surface", "Col")))
+                parts.append(made.add(bpy.data.objects.new(f"{o.name} mesh", me)))
+            for part in parts:
+                coll.objects.link(part)
+                part.parent = empty
+            key_matrices(empty, o.frames + 1.0, o.object_to_scene)
+            _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)))
+        cams = [("OSN training camera", data.camera_to_scene)]
+        if data.test_cameras is not None:
+            cams += [(f"OSN test camera {v}", c) for v, c in enumerate(data.test_cameras)]
+        cam_objs = []
+        for name, c2s in cams:
+            cobj = made.add(bpy.data.objects.new(name, made.add(_camera_data(name, data))))
+            coll.objects.link(cobj)
+            key_matrices(cobj, frames_all, core.blender_camera_matrices(c2s))
+            cam_objs.append(cobj)
+    except BaseException:
+        made.remove_all()
+        raise
+    scene.collection.children.link(coll)
+    scene.camera = cam_objs[0]
+    scene.render.resolution_x, scene.render.resolution_y = data.width, data.height
+    scene.render.resolution_percentage = 100
+    scene.frame_start, scene.frame_end = 1, data.num_frames
+    scene.osn_collection = coll
+    return coll
+
+
+# --------------------------------------------------------------------------------------------
+# Configurations
+# --------------------------------------------------------------------------------------------
+
+
+def osn_objects(coll: bpy.types.Collection) -> list[bpy.types.Object]:
+    """The per-object empties of an imported export, in manifest order."""
+    return sorted((o for o in coll.objects if P_INDEX in o), key=lambda o: o[P_INDEX])
+
+
+def manifest(coll: bpy.types.Collection) -> dict[str, Any]:
+    return json.loads(coll[P_MANIFEST])
+
+
+def _apply_scale(empty: bpy.types.Object, coll: bpy.types.Collection, sbar: float) -> None:
+    """Re-key ``empty`` at scale ``sbar`` about each frame's training camera centre."""
+    base = np.asarray(empty[P_BASE], dtype=np.float64).reshape(-1, 4, 4)
+    frames = np.asarray(empty[P_FRAMES], dtype=np.float64)
+    centres = np.asarray(coll[P_CENTRES], dtype=np.float64).reshape(-1, 3)[frames.astype(int)]
+    key_matrices(empty, frames + 1.0, core.configured_poses(base, centres, sbar))
+    empty[P_KEYED] = sbar
+    for child in empty.children:
+        if P_INV in child:
+            child[P_INV] = 1.0 / sbar
+
+
+def current_scales(coll: bpy.types.Collection) -> np.ndarray:
+    """``(K,)`` actual scales of the sliders (the anchor's is 1)."""
+    return np.array([float(o.get(P_SCALE, 1.0)) for o in osn_objects(coll)])
+
+
+def sync_scales(coll: bpy.types.Collection) -> int:
+    """Re-key every object whose slider moved since it was last keyed; returns how many."""
+    n = 0
+    for o in osn_objects(coll):
+        if P_SCALE in o and abs(float(o[P_SCALE]) - float(o[P_KEYED])) > 0.0:
+            _apply_scale(o, coll, float(o[P_SCALE]))
+            n += 1
+    return n
+
+
+def set_scales(coll: bpy.types.Collection, sbar: np.ndarray) -> None:
+    """Move the sliders to actual scales ``sbar (K,)`` (clamped to the learned intervals) and re-key."""
+    for o, s in zip(osn_objects(coll), np.asarray(sbar, dtype=np.float64)):
+        if P_SCALE in o:
+            ui = o.id_properties_ui(P_SCALE).as_dict()
+            o[P_SCALE] = float(np.clip(s, ui["min"], ui["max"]))
+    sync_scales(coll)
+
+
+def export_data(coll: bpy.types.Collection) -> core.ExportData:
+    """The scale-related part of the export, rebuilt from the collection's properties."""
+    m = manifest(coll)
+    net = m.get("scale_network")
+    layers = None
+    if net is not None:
+        layers, width = [], len(m["objects"]) - 1
+        for i in range(int(net["layers"])):
+            W = np.asarray(coll[f"osn_net_W{i}"], dtype=np.float64)
+            b = np.asarray(coll[f"osn_net_b{i}"], dtype=np.float64)
+            layers.append((W.reshape(len(b), width), b))
+            width = len(b)
+    objs = [
+        core.ExportObjectData(
+            id=o["id"], name=o["name"], is_anchor=o["is_anchor"], bbox=np.asarray(o["bbox"]), grid_shape=tuple(o["grid_shape"]),
+            scale_range=tuple(o["scale_range"]), valid_interval=tuple(o["valid_interval"]), frames=np.zeros(0, int),
+            object_to_scene=np.zeros((0, 4, 4)), volume_path="", mesh_path=None,
+        )
+        for o in m["objects"]
+    ]
+    K = len(objs)
+    return core.ExportData(
+        root="", manifest=m, width=m["camera"]["width"], height=m["camera"]["height"], K=np.asarray(m["camera"]["K"]),
+        timestamps=np.asarray(m["timestamps"]), camera_to_scene=np.zeros((0, 4, 4)), test_cameras=None, objects=objs,
+        anchor_index=[o.is_anchor for o in objs].index(True), net_layers=layers,
+        net_hidden=net["hidden_activation"] if net else "relu", net_output=net["output_activation"] if net else "sigmoid",
+        net_threshold=float(net["threshold"]) if net else 0.5,
+        samples=np.asarray(coll[P_SAMPLES], dtype=np.float64).reshape(-1, K),
+    )
+
+
+def validity(coll: bpy.types.Collection) -> float:
+    """Scale-network score of the sliders' current configuration."""
+    return float(export_data(coll).validity(current_scales(coll)))
+
+
+def sample_and_store(coll: bpy.types.Collection, seed: int) -> int:
+    """Draw one valid configuration (seeded rejection sampling), append it, apply it; return its index."""
+    data = export_data(coll)
+    sbar = core.sample_valid_configurations(data, 1, seed)[0]
+    samples = np.concatenate([data.samples, sbar[None]])
+    coll[P_SAMPLES] = samples.ravel().tolist()
+    set_scales(coll, sbar)
+    return len(samples) - 1
+
+
+def apply_sample(coll: bpy.types.Collection, index: int) -> np.ndarray:
+    """Apply stored configuration ``index``; returns its scales. Raises IndexError when absent."""
+    samples = export_data(coll).samples
+    if not 0 <= index < len(samples):
+        raise IndexError(f"configuration {index} does not exist ({len(samples)} stored)")
+    set_scales(coll, samples[index])
+    return samples[index]
