@@ -198,3 +198,15 @@ def test_verify_detects_a_broken_configuration(tiny, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "FAILED configuration 002" in out and "training frame v" in out
     assert verify_dataset(tiny, progress=False).passed
+
+
+def test_ray_executor_matches_local(tiny, tmp_path):
+    """Same shards on a local Ray instance give the same files (skipped when Ray is absent)."""
+    ray = pytest.importorskip("ray")
+    out = tmp_path / "ray"
+    try:
+        summary = generate(load_preset("tiny"), out, workers=2, executor="ray", progress=False)
+    finally:
+        ray.shutdown()
+    assert summary.passed
+    _assert_same_tree(tiny, out)

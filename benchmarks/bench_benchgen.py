@@ -1,0 +1,50 @@
+"""benchgen speed: wall time of ``generate`` against the time spent inside Cycles render calls.
+
+Reports (a) wall / sum of pure ``bpy.ops.render.render`` calls (target <= 1.3 with one worker),
+(b) frames per second at 128x128 on gnome-house, (c) growth with G and with resolution (on a
+reduced 5x5 rig so the sweep stays short). Run:
+
+    .venv/bin/python benchmarks/bench_benchgen.py [--configs 2] [--skip-sweep]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+from benchgen.generate import generate
+from benchgen.spec import load_preset, spec_from_dict
+
+
+def run(spec, label: str) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        s = generate(spec, Path(tmp) / "ds", progress=False)
+    ratio = s.wall_seconds / s.render_seconds
+    print(
+        f"{label:38s} frames={s.frames_rendered:5d} wall={s.wall_seconds:7.1f}s render={s.render_seconds:7.1f}s "
+        f"wall/render={ratio:.2f} fps={s.frames_rendered / s.wall_seconds:.2f} verified={s.passed}"
+    )
+    return {"wall": s.wall_seconds, "render": s.render_seconds, "frames": s.frames_rendered}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--configs", type=int, default=2, help="G for the full 15x15 gnome-house run")
+    ap.add_argument("--skip-sweep", action="store_true", help="only the full gnome-house run")
+    args = ap.parse_args()
+    base = load_preset("gnome-house")
+    run(base.with_overrides(configs=args.configs), f"gnome-house 15x15 128px G={args.configs}")
+    if args.skip_sweep:
+        return
+    small = base.to_dict()
+    small["rig"].update(views=5, times=5)
+    small = spec_from_dict(small, "gnome-house-5x5")
+    for g in (1, 2, 4):
+        run(small.with_overrides(configs=g, resolution=64), f"gnome-house 5x5 64px G={g}")
+    for res in (32, 64, 128):
+        run(small.with_overrides(configs=1, resolution=res), f"gnome-house 5x5 {res}px G=1")
+
+
+if __name__ == "__main__":
+    main()
