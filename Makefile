@@ -21,6 +21,11 @@ $(STAMP): pyproject.toml Makefile
 	@# resolving the project's unpinned 'torch' never pulls CUDA packages.
 	@$(PY) -c "import torch" >/dev/null 2>&1 || $(PY) -m pip install --quiet $(TORCH_SPEC)
 	$(PY) -m pip install --quiet -e ".[test]"
+	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared
+	@# torchvision would pull a CUDA torch; nothing imports it outside tests.
+	$(PY) -m pip install --quiet --no-deps lpips==0.1.4
+	@# LPIPS AlexNet v0.1 weights for offline evaluation, fetched and converted once (idempotent).
+	$(PY) -m osn.lpips install
 	@touch $(STAMP)
 
 test: $(STAMP)
