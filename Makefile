@@ -39,3 +39,7 @@ bench: $(STAMP)
 
 clean-venv:
 	rm -rf $(VENV)
+
+# Installable Blender extension zip (Blender 4.2+ / 5.0) in dist/.
+addon: $(STAMP)
+	$(PY) -m osn.addon_build --out dist

@@ -29,7 +29,7 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -46,7 +46,7 @@ ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
 __all__ = [
     "EXPORT_FORMAT", "EXPORT_VERSION", "MANIFEST_NAME", "ExportFormatError", "ExportObjectData", "ExportData",
     "scale_net_numpy", "denormalise", "normalise", "configured_poses", "blender_camera_matrices",
-    "learned_intervals", "sample_valid_configurations", "read_export", "read_ply", "sha256_file",
+    "learned_intervals", "scale_scores", "sample_valid_configurations", "read_export", "read_ply", "sha256_file",
     "opengl_from_opencv", "scale_about",
 ]
 
@@ -120,14 +120,21 @@ def blender_camera_matrices(camera_to_scene: np.ndarray) -> np.ndarray:
     return opengl_from_opencv(camera_to_scene)
 
 
-def _score_scales(data: "ExportData", sbar: np.ndarray) -> np.ndarray:
-    """Validity scores ``(N,)`` of actual scales ``sbar (N, K)`` (all 1 without a network)."""
+def scale_scores(
+    layers: Sequence[tuple[np.ndarray, np.ndarray]] | None,
+    sbar: np.ndarray,
+    ranges: np.ndarray,
+    anchor_index: int,
+    hidden: str = "relu",
+    output: str = "sigmoid",
+) -> np.ndarray:
+    """Validity scores ``(N,)`` of actual scales ``sbar (N, K)``: Eq. 1 inverted, anchor dropped,
+    then the network (all ones without a network: a single object is always valid)."""
     sbar = np.atleast_2d(sbar)
-    if data.net_layers is None:
+    if layers is None:
         return np.ones(len(sbar))
-    free = data.free_indices
-    s_norm = normalise(sbar[:, free], data.scale_ranges[free])
-    return scale_net_numpy(data.net_layers, s_norm, data.net_hidden, data.net_output)
+    free = [k for k in range(sbar.shape[1]) if k != anchor_index]
+    return scale_net_numpy(layers, normalise(sbar[:, free], ranges[free]), hidden, output)
 
 
 def learned_intervals(
@@ -163,14 +170,18 @@ def learned_intervals(
     return out
 
 
-def sample_valid_configurations(data: "ExportData", count: int, seed: int, max_draws: int = 1_000_000) -> np.ndarray:
-    """``(count, K)`` actual scales drawn uniformly inside the learned intervals and kept when valid.
+def sample_valid_configurations(
+    score: Callable[[np.ndarray], np.ndarray], intervals: np.ndarray, threshold: float, count: int, seed: int,
+    max_draws: int = 1_000_000,
+) -> np.ndarray:
+    """``(count, K)`` actual scales drawn uniformly inside ``intervals (K, 2)`` and kept when valid.
 
-    Seeded rejection sampling through the scale network, batch by batch, so the result depends
-    only on ``seed``. Raises ``ExportFormatError`` if ``max_draws`` draws give too few.
+    Seeded rejection sampling through ``score`` (actual scales ``(N, K)`` -> ``(N,)``, e.g.
+    :meth:`ExportData.validity`), batch by batch, so the result depends only on ``seed``.
+    Raises ``ExportFormatError`` if ``max_draws`` draws give too few.
     """
     rng = np.random.default_rng(seed)
-    lo, hi = data.valid_intervals[:, 0], data.valid_intervals[:, 1]
+    lo, hi = intervals[:, 0], intervals[:, 1]
     kept: list[np.ndarray] = []
     drawn = 0
     while sum(len(k) for k in kept) < count:
@@ -178,7 +189,7 @@ def sample_valid_configurations(data: "ExportData", count: int, seed: int, max_d
             raise ExportFormatError(f"only {sum(len(k) for k in kept)} of {count} valid configurations in {max_draws} draws")
         batch = lo + (hi - lo) * rng.random((4096, len(lo)))
         drawn += len(batch)
-        kept.append(batch[_score_scales(data, batch) >= data.net_threshold])
+        kept.append(batch[score(batch) >= threshold])
     return np.concatenate(kept)[:count]
 
 
@@ -245,8 +256,13 @@ class ExportData:
 
     def validity(self, sbar: np.ndarray) -> np.ndarray:
         """Scale-network score of actual scales ``(N, K)`` or ``(K,)``."""
-        s = _score_scales(self, np.asarray(sbar, dtype=np.float64))
+        s = scale_scores(self.net_layers, np.asarray(sbar, dtype=np.float64), self.scale_ranges, self.anchor_index,
+                         self.net_hidden, self.net_output)
         return s if np.ndim(sbar) > 1 else s[0]
+
+    def sample(self, count: int, seed: int) -> np.ndarray:
+        """``count`` valid configurations (actual scales), seeded rejection sampling."""
+        return sample_valid_configurations(self.validity, self.valid_intervals, self.net_threshold, count, seed)
 
 
 def sha256_file(path: str) -> str:

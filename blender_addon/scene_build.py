@@ -367,7 +367,7 @@ def validity(coll: bpy.types.Collection) -> float:
 def sample_and_store(coll: bpy.types.Collection, seed: int) -> int:
     """Draw one valid configuration (seeded rejection sampling), append it, apply it; return its index."""
     data = export_data(coll)
-    sbar = core.sample_valid_configurations(data, 1, seed)[0]
+    sbar = data.sample(1, seed)[0]
     samples = np.concatenate([data.samples, sbar[None]])
     coll[P_SAMPLES] = samples.ravel().tolist()
     set_scales(coll, sbar)

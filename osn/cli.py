@@ -111,6 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--on-failure", choices=["stop", "skip"], default="stop",
                    help="an object that fails to register: stop with its message, or train without it")
     p.add_argument("--seed", type=int, default=0, help="every pycolmap random seed")
+
+    from .export import add_export_parser
+
+    add_export_parser(sub)
     return parser
 
 

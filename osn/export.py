@@ -481,3 +481,124 @@ def field_grids(field_module: Any, resolution: int, chunk: int = 65536) -> tuple
 def export_layers_from_torch(modules: Sequence[Any]) -> list[tuple[np.ndarray, np.ndarray]]:
     """``[(W, b), ...]`` from a sequence of ``torch.nn.Linear`` modules, in order."""
     return [(m.weight.detach().cpu().double().numpy(), m.bias.detach().cpu().double().numpy()) for m in modules]
+
+
+# --------------------------------------------------------------------------------------------
+# From a trained run (``osn train`` run directory)
+# --------------------------------------------------------------------------------------------
+
+
+def scale_network_from_torch(net: Any, threshold: float) -> ScaleNetwork:
+    """An ``osn.scale_net.ScaleNet`` as plain layers (ReLU hidden, sigmoid on the logit).
+
+    ``ScaleNet`` centres its input (``s * 2 - 1``) before the first layer; that affine map is
+    folded into the first layer (``W' = 2 W``, ``b' = b - W 1``) so the export's input is the
+    normalised scale itself, as the manifest states.
+    """
+    from torch import nn
+
+    mods = list(net.mlp)
+    linears = [m for m in mods if isinstance(m, nn.Linear)]
+    if any(not isinstance(m, (nn.Linear, nn.ReLU)) for m in mods) or not isinstance(mods[-1], nn.Linear):
+        raise ExportFormatError(f"unexpected scale network layout {[type(m).__name__ for m in mods]}")
+    layers = export_layers_from_torch(linears)
+    W0, b0 = layers[0]
+    layers[0] = (2.0 * W0, b0 - W0.sum(axis=1))
+    return ScaleNetwork(layers=layers, hidden_activation="relu", output_activation="sigmoid", threshold=float(threshold))
+
+
+def _test_rig(dataset: str | None, T: int) -> np.ndarray | None:
+    """``(V, T, 4, 4)`` OpenCV test cameras of the run's dataset (world frame), if it is reachable."""
+    if not dataset or not (Path(dataset) / "scene.json").is_file():
+        return None
+    scene = D.load_scene(dataset)
+    views = sorted({f.view for f in scene.test_frames})
+    rig = np.full((len(views), T, 4, 4), np.nan)
+    # A viewpoint's camera at the time it films the training video is a training frame.
+    for f in scene.frames:
+        if f.view in views:
+            rig[views.index(f.view), f.time_index] = f.camera_to_world
+    # A viewpoint is usable only if it has a camera at every timestamp.
+    keep = [v for v in range(len(views)) if np.all(np.isfinite(rig[v]))]
+    return rig[keep] if keep else None
+
+
+def export_run(
+    run_dir: str | Path,
+    out_dir: str | Path,
+    resolution: int | None = None,
+    samples: int = 0,
+    seed: int = 0,
+    echo: Any = print,
+) -> Path:
+    """Export an ``osn train`` run directory; returns the manifest path.
+
+    Reads the run's ``inputs/`` and ``checkpoint.pt`` (fields at their trained resolutions, the
+    scale network, the training config), samples every field on a ``resolution^3`` grid
+    (default: the field's own resolution), derives the learned valid intervals from the scale
+    network, adds the dataset's test rig when the dataset is reachable and ``samples`` valid
+    configurations drawn through the scale network (seeded).
+    """
+    import torch
+
+    from .fields import FieldConfig, make_field
+    from .inputs import load_inputs
+    from .scale_net import ScaleNet
+
+    run = Path(run_dir)
+    ckpt_path = run / "checkpoint.pt"
+    if not ckpt_path.is_file():
+        raise FileNotFoundError(f"{ckpt_path}: missing (not an osn train run directory, or training has not checkpointed yet)")
+    inputs = load_inputs(run / "inputs")
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    cfg = ckpt["config"]
+    fcfg = FieldConfig(**cfg["field"])
+    grids = {}
+    for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
+        f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r)
+        f.load_state_dict(sd)
+        f.eval()
+        grids[o.id] = field_grids(f, resolution or r)
+        echo(f"export: sampled object {o.id} ({o.name}) at {resolution or r}^3")
+    net = None
+    if ckpt.get("net") is not None:
+        tnet = ScaleNet(len(inputs.objects) - 1, cfg["scale_width"], cfg["scale_layers"])
+        tnet.load_state_dict(ckpt["net"])
+        net = scale_network_from_torch(tnet, cfg["valid_threshold"])
+    dataset = None
+    if (run / "run.json").is_file():
+        dataset = D.read_json(run / "run.json").get("dataset")
+    test = _test_rig(dataset, len(inputs.timestamps)) if inputs.world_to_anchor is not None else None
+    scene = export_scene_from_inputs(inputs, grids, net, test_camera_to_world=test, source=str(run.resolve()))
+    scene.meta.update({"name": run.name, "iteration": int(ckpt.get("iteration", 0)), "dataset": dataset})
+    if samples > 0 and net is not None:
+        ranges = np.array([o.scale_range for o in scene.objects])
+        anchor_index = [o.is_anchor for o in scene.objects].index(True)
+
+        def score(sbar: np.ndarray) -> np.ndarray:
+            return core.scale_scores(net.layers, sbar, ranges, anchor_index, net.hidden_activation, net.output_activation)
+
+        intervals = np.array([o.valid_interval for o in scene.objects])
+        scene.samples = core.sample_valid_configurations(score, intervals, net.threshold, samples, seed)
+    return write_export(out_dir, scene, echo=echo)
+
+
+def add_export_parser(sub: Any) -> None:
+    """Register ``osn export RUN --out DIR`` on the ``osn`` command's subparsers."""
+    from benchgen.cliutil import subcommand
+
+    def _cmd(args: Any) -> int:
+        export_run(args.run, args.out, resolution=args.resolution, samples=args.samples, seed=args.seed)
+        return 0
+
+    p = subcommand(
+        sub, "export", _cmd, "export a trained run for Blender (OpenVDB volumes, meshes, trajectories, scale network)",
+        description="Write a versioned export directory (docs/export-and-addon.md) that the Blender add-on imports: "
+        "per object an OpenVDB volume and a marching-cubes PLY, per-frame poses and cameras, the scale network and "
+        "its learned valid intervals, and optionally sampled valid configurations. Written atomically.",
+    )
+    p.add_argument("run", help="osn train run directory (config.yaml, inputs/, checkpoint.pt)")
+    p.add_argument("--out", required=True, help="export directory (created, or replaces a previous export)")
+    p.add_argument("--resolution", type=int, help="grid samples per axis (default: each field's trained resolution)")
+    p.add_argument("--samples", type=int, default=16, help="valid configurations to sample through the scale network")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sampled configurations")
