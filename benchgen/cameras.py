@@ -184,3 +184,32 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     T[:3, :3] = s * R
     T[:3, 3] = mu_d - s * R @ mu_s
     return T
+
+
+def fit_pose_similarity(src_c2w: np.ndarray, dst_c2w: np.ndarray) -> np.ndarray:
+    """Similarity ``T`` aligning camera poses ``src (N,4,4)`` to ``dst (N,4,4)``: ``dst ~ T @ src``.
+
+    The rotation averages the per-camera orientation differences (projected onto SO(3)), then
+    scale and translation fit the camera centres by least squares. Unlike
+    :func:`fit_similarity` on centres alone, this works for a single camera or centres on a line,
+    as long as two centres differ (for the scale); with one centre the scale is 1.
+    """
+    src = np.asarray(src_c2w, dtype=np.float64)
+    dst = np.asarray(dst_c2w, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 3 or src.shape[1:] != (4, 4) or len(src) == 0:
+        raise ValueError(f"fit_pose_similarity needs two (N, 4, 4) arrays, got {src.shape} and {dst.shape}")
+    M = np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3])  # sum of R_dst R_src^T
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    x = src[:, :3, 3] @ R.T
+    c = dst[:, :3, 3]
+    xm, cm = x.mean(0), c.mean(0)
+    var = ((x - xm) ** 2).sum()
+    s = float(((x - xm) * (c - cm)).sum() / var) if var > 1e-18 else 1.0
+    if s <= 0:
+        raise ValueError("fit_pose_similarity: camera centres give a negative scale (poses disagree)")
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = cm - s * xm
+    return T

@@ -12,6 +12,7 @@ No GUI, every random seed fixed, single-threaded where threads change results.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from benchgen import dataset as D
-from benchgen.cameras import fit_similarity, intrinsics_from_fov, invert_pose, rotation_angle_deg
+from benchgen.cameras import fit_pose_similarity, intrinsics_from_fov, invert_pose, rotation_angle_deg
 from .inputs import (
     InputsError,
     ObjectInputs,
@@ -46,12 +47,15 @@ class PreprocessConfig:
         sequential_overlap: neighbours matched per frame by the sequential matcher.
         max_features: SIFT features per image and object.
         peak_threshold: SIFT peak threshold (lower finds more features on small images).
+        upscale: integer upsampling of frames before SIFT (small objects need it).
         mask_erosion: pixels removed from each mask border, so features do not straddle objects.
         min_frames: an object must register at least this many frames.
         min_points: ... and triangulate at least this many 3D points.
         min_mask_pixels: frames where the object covers fewer pixels are not used for it.
         on_failure: ``stop`` raises on an object that fails; ``skip`` trains without it.
         max_reprojection_error: observations above this (pixels) are dropped.
+        min_matches, init_min_inliers, init_min_tri_angle, abs_pose_min_inliers: mapper
+            thresholds, relaxed from COLMAP's megapixel defaults for small object crops.
         scene_near_factor, scene_far_factor, box_padding: as in the oracle (shared normalisation).
         seed: every random seed of pycolmap.
     """
@@ -60,13 +64,18 @@ class PreprocessConfig:
     exhaustive_max_frames: int = 60
     sequential_overlap: int = 10
     max_features: int = 4096
-    peak_threshold: float = 0.004
+    peak_threshold: float = 0.001
     mask_erosion: int = 1
+    upscale: int = 2
     min_frames: int = 3
     min_points: int = 20
     min_mask_pixels: int = 16
     on_failure: str = "stop"
     max_reprojection_error: float = 4.0
+    min_matches: int = 12
+    init_min_inliers: int = 30
+    init_min_tri_angle: float = 4.0
+    abs_pose_min_inliers: int = 12
     scene_near_factor: float = OracleConfig.scene_near_factor
     scene_far_factor: float = OracleConfig.scene_far_factor
     box_padding: float = OracleConfig.box_padding
@@ -110,6 +119,18 @@ class PreprocessReport:
 # --------------------------------------------------------------------------------------------
 
 
+def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    """Bicubic upsampling by an integer factor: SIFT finds few features on objects of ~30 pixels."""
+    if factor == 1:
+        return image
+    from skimage.transform import resize
+
+    h, w = image.shape[:2]
+    out = resize(image, (h * factor, w * factor) + image.shape[2:], order=3 if image.ndim == 3 else 0,
+                 preserve_range=True, anti_aliasing=False)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
 def _erode(mask: np.ndarray, r: int) -> np.ndarray:
     if r <= 0:
         return mask
@@ -129,6 +150,8 @@ def reconstruct_object(
     import imageio.v3 as iio
     import pycolmap
 
+    # COLMAP logs every step to stderr; our own messages say what matters.
+    pycolmap.logging.minloglevel = int(os.environ.get("OSN_COLMAP_LOGLEVEL", 3))
     label = f"object {object_id}" + (f" ({name})" if name else "")
     T, H, W = masks.shape
     frames = [t for t in range(T) if (masks[t] == object_id).sum() >= cfg.min_mask_pixels]
@@ -147,13 +170,14 @@ def reconstruct_object(
         for t in frames:
             n = f"{t:05d}.png"
             names.append(n)
-            iio.imwrite(img_dir / n, images[t])
             m = _erode(masks[t] == object_id, cfg.mask_erosion)
-            iio.imwrite(mask_dir / f"{n}.png", (m * 255).astype(np.uint8))
+            iio.imwrite(img_dir / n, _upscale(images[t], cfg.upscale))
+            iio.imwrite(mask_dir / f"{n}.png", _upscale((m * 255).astype(np.uint8), cfg.upscale))
         db = work / "database.db"
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"
-        reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
+        u = cfg.upscale  # pixel corners stay at integers, so every intrinsic scales by u
+        reader.camera_params = f"{u * K[0, 0]},{u * K[1, 1]},{u * K[0, 2]},{u * K[1, 2]}"
         reader.mask_path = str(mask_dir)
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.num_threads = 1
@@ -186,18 +210,26 @@ def reconstruct_object(
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = False
         opts.min_model_size = min(cfg.min_frames, 3)
+        # COLMAP's defaults (100 inliers, 16 degrees) are tuned for megapixel photos; a 128x128
+        # object crop has tens of matches and a short baseline.
+        opts.min_num_matches = cfg.min_matches
+        opts.mapper.init_min_num_inliers = cfg.init_min_inliers
+        opts.mapper.init_min_tri_angle = cfg.init_min_tri_angle
+        opts.mapper.abs_pose_min_num_inliers = cfg.abs_pose_min_inliers
         recs = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
         if not recs:
             raise ObjectRegistrationError(
                 f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {advice}"
             )
         rec = max(recs.values(), key=lambda r: r.num_reg_images())
-        return _collect(rec, label, frames, num_features, cfg, advice)
+        return _collect(rec, label, frames, num_features, cfg, advice, W, H)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def _collect(rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, advice: str) -> ObjectSfM:
+def _collect(
+    rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, advice: str, width: int, height: int
+) -> ObjectSfM:
     reg = sorted(rec.images.values(), key=lambda im: im.name)
     reg = [im for im in reg if im.has_pose]
     if len(reg) < cfg.min_frames or rec.num_points3D() < cfg.min_points:
@@ -226,7 +258,9 @@ def _collect(rec, label: str, frames: list[int], num_features: int, cfg: Preproc
             continue
         out_frames.append(int(Path(im.name).stem))
         poses.append(invert_pose(cfw))
-        pix_l.append(np.floor(np.asarray(xy)).astype(np.int64))  # pixel centres at .5
+        # Back to input pixels; pixel centres are at .5 in both COLMAP and our convention.
+        pix = np.floor(np.asarray(xy) / cfg.upscale).astype(np.int64)
+        pix_l.append(np.clip(pix, 0, [width - 1, height - 1]))
         dep_l.append(np.asarray(z))
         # Down-weight observations with large reprojection error (Cauchy-like, 1 px scale).
         w_l.append(1.0 / (1.0 + np.asarray(err) ** 2))
@@ -328,24 +362,25 @@ def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress
 def align_to_ground_truth(inputs: SceneInputs, oracle: SceneInputs, report: PreprocessReport, scene: D.Scene) -> None:
     """Fill units, world-to-anchor and accuracy figures by aligning SfM to the oracle poses.
 
-    Per object, a similarity maps the SfM camera centres (object frame) onto the ground-truth ones;
-    its scale gives the metres per SfM unit. Rotation error is measured after that alignment.
+    Per object, a similarity maps the SfM camera poses (object frame) onto the ground-truth ones
+    (:func:`benchgen.cameras.fit_pose_similarity`); its scale gives the metres per SfM unit.
+    Rotation and camera-centre errors are measured after that alignment.
     """
     by_id = {o.id: o for o in oracle.objects}
     for o, rep in zip(inputs.objects, [r for r in report.objects if "error" not in r]):
         gt = by_id[o.id]
         slots = [gt.frame_slot(int(t)) for t in o.frames]
         keep = [i for i, s in enumerate(slots) if s is not None]
-        c_sfm = o.cam_to_obj[keep, :3, 3]
-        c_gt = gt.cam_to_obj[[slots[i] for i in keep], :3, 3]
+        gt_poses = gt.cam_to_obj[[slots[i] for i in keep]]
         try:
-            S = fit_similarity(c_sfm, c_gt)
+            S = fit_pose_similarity(o.cam_to_obj[keep], gt_poses)
         except ValueError as e:
             rep["alignment"] = f"not measurable: {e}"
             continue
         scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
         R = S[:3, :3] / scale
         o.unit_to_world = scale * gt.unit_to_world
+        c_sfm, c_gt = o.cam_to_obj[keep, :3, 3], gt_poses[:, :3, 3]
         rot = [rotation_angle_deg(R @ o.cam_to_obj[i, :3, :3], gt.cam_to_obj[slots[i], :3, :3]) for i in keep]
         aligned = c_sfm @ S[:3, :3].T + S[:3, 3]
         err = np.linalg.norm(aligned - c_gt, axis=1) * gt.unit_to_world  # metres
@@ -358,12 +393,11 @@ def align_to_ground_truth(inputs: SceneInputs, oracle: SceneInputs, report: Prep
             center_error_m_mean=float(err.mean()),
             center_error_m_max=float(err.max()),
         )
-    # Test-view alignment: the similarity between ground-truth training cameras (world) and the
-    # anchor's SfM cameras. It uses only camera centres, which any video with known cameras has.
-    anchor = next(o for o in inputs.objects if o.id == inputs.anchor)
-    centers_world = scene.training_camera_centers()[anchor.frames]
-    centers_anchor = anchor.cam_to_obj[:, :3, 3]
-    inputs.world_to_anchor = fit_similarity(centers_world, centers_anchor)
+    # Test-view alignment: the similarity taking the ground-truth training cameras (world) onto
+    # the anchor's SfM cameras, so evaluation can bring test cameras into the anchor's frame.
+    anchor = inputs.object(inputs.anchor)
+    c2w = {f.time_index: f.camera_to_world for f in scene.train_frames}
+    inputs.world_to_anchor = fit_pose_similarity(np.stack([c2w[int(t)] for t in anchor.frames]), anchor.cam_to_obj)
 
 
 def load_video(frames_dir: str | Path, masks_dir: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
