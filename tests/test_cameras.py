@@ -99,3 +99,14 @@ def test_look_at_points_forward():
     assert np.allclose(T[:3, 2], [0, 1, 0])
     assert np.allclose(T[:3, 1], [0, 0, -1])  # image y points down = world -z
     assert C.rotation_angle_deg(T, T) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_fit_pose_similarity_recovers_transform_even_for_collinear_centres():
+    rng = np.random.default_rng(4)
+    T = random_pose(rng)
+    T[:3, :3] *= 2.3
+    src = np.stack([random_pose(rng) for _ in range(6)])
+    src[:, :3, 3] = np.outer(np.arange(6.0), [1.0, 0.5, -0.2])  # centres on a line
+    dst = T[None] @ src
+    dst[:, :3, :3] /= 2.3  # poses stay rigid; the scale lives in the centres
+    assert np.allclose(C.fit_pose_similarity(src, dst), T, atol=1e-9)
