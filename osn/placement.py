@@ -55,17 +55,19 @@ def object_transforms(
 ) -> dict[int, np.ndarray]:
     """4x4 similarity per object present at ``time_index``: camera point (scene units) -> object.
 
+    ``sbar`` and the returned keys index objects by *position* in ``inputs.objects`` (as every
+    scale vector in osn does; positions equal ids unless preprocessing dropped an object).
     Scaling is about the training camera centre, so the division by ``sbar_k`` happens in
     training-camera coordinates: ``cam_to_obj_k[t] @ diag(1/sbar_k) @ cam_to_traincam``.
     Objects without a pose at ``time_index`` are absent from the result (they are not seen then).
     """
     out: dict[int, np.ndarray] = {}
-    for o in inputs.objects:
+    for k, o in enumerate(inputs.objects):
         slot = o.frame_slot(time_index)
         if slot is None:
             continue
-        s = float(sbar[o.id])
+        s = float(sbar[k])
         if not (np.isfinite(s) and s > 0):
-            raise InputsError(f"scale of object {o.id} must be finite and positive, got {s}")
-        out[o.id] = o.cam_to_obj[slot] @ np.diag([1.0 / s] * 3 + [1.0]) @ cam_to_traincam
+            raise InputsError(f"scale of object {o.id} ({o.name}) must be finite and positive, got {s}")
+        out[k] = o.cam_to_obj[slot] @ np.diag([1.0 / s] * 3 + [1.0]) @ cam_to_traincam
     return out

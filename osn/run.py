@@ -1,0 +1,150 @@
+"""A trained run, loaded for inference: fields, scale network, inputs; rendering any view.
+
+``load_run(RUN)`` reads what ``osn train`` wrote (``inputs/``, ``checkpoint.pt`` with the config)
+and returns a :class:`TrainedRun`. ``TrainedRun.render_view`` renders a configuration from any
+OpenCV camera at a training timestamp, either a training camera or a world-space test camera
+placed through :mod:`osn.placement`. All scale vectors are indexed by object *position* in
+``inputs.objects``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchgen import dataset as D
+from benchgen.cameras import pixel_rays
+from .fields import Field, FieldConfig, make_field
+from .inputs import SceneInputs, load_inputs
+from .placement import novel_to_training_camera, object_transforms
+from .scale_net import ScaleNet, full_sbar
+from .volume import ObjectRays, RenderOutput, render
+
+
+@dataclass
+class TrainedRun:
+    """Everything needed to score and render configurations of a trained model."""
+
+    path: Path
+    inputs: SceneInputs
+    config: dict
+    fields: list[Field]
+    net: ScaleNet | None
+    device: torch.device
+    iteration: int
+    train_seconds: float
+
+    @property
+    def anchor_pos(self) -> int:
+        return next(k for k, o in enumerate(self.inputs.objects) if o.id == self.inputs.anchor)
+
+    @property
+    def ranges(self) -> np.ndarray:
+        """``(K, 2)`` Eq. 1 de-normalised scale range per object position."""
+        return self.inputs.scale_ranges()
+
+    @property
+    def dataset(self) -> str | None:
+        p = self.path / "run.json"
+        return D.read_json(p).get("dataset") if p.exists() else None
+
+    def sbar(self, s_free: np.ndarray) -> np.ndarray:
+        """De-normalised ``(N, K)`` scale vectors from free normalised scales ``(N, K-1)``."""
+        t = torch.as_tensor(np.atleast_2d(s_free), dtype=torch.float64)
+        return full_sbar(t, torch.from_numpy(self.ranges), self.anchor_pos).numpy()
+
+    @torch.no_grad()
+    def scores(self, s_free: np.ndarray, batch: int = 65536) -> np.ndarray:
+        """Validity scores (sigmoid) of free normalised scales ``(N, K-1)``; all 1 for one object."""
+        s = np.atleast_2d(s_free)
+        if self.net is None:
+            return np.ones(len(s))
+        out = []
+        for i in range(0, len(s), batch):
+            x = torch.as_tensor(s[i : i + batch], dtype=torch.float32, device=self.device)
+            out.append(self.net.prob(x).double().cpu().numpy())
+        return np.concatenate(out) if out else np.zeros(0)
+
+    @torch.no_grad()
+    def render_view(
+        self,
+        camera_to_world: np.ndarray | None,
+        time_index: int,
+        sbar: np.ndarray,
+        objects: list[int] | None = None,
+        chunk: int = 8192,
+        n_samples: int | None = None,
+    ) -> dict[str, np.ndarray]:
+        """Render ``(H, W)`` images of configuration ``sbar (K,)`` at timestamp ``time_index``.
+
+        ``camera_to_world`` is a dataset-world OpenCV camera (test view) or None for the training
+        camera of that timestamp. ``objects`` restricts rendering to some object positions (a
+        layer). Returns ``rgb (H,W,3)``, ``depth (H,W)`` (planar, scene units, where ``acc > 0``),
+        ``acc (H,W)`` and ``ids (H,W)`` (object id of the largest weight share, 255 where empty).
+        """
+        inp = self.inputs
+        H, W = inp.height, inp.width
+        M = np.eye(4) if camera_to_world is None else novel_to_training_camera(inp, camera_to_world, time_index)
+        T = object_transforms(inp, M, time_index, np.asarray(sbar, dtype=np.float64))
+        keep = [k for k in (objects if objects is not None else range(inp.num_objects)) if k in T]
+        _, d = pixel_rays(inp.K, np.eye(4), W, H)
+        dirs = torch.from_numpy(d).float().to(self.device)
+        cfg = self.config
+        S = n_samples or int(cfg.get("samples", 32))
+        bg = torch.tensor(cfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32, device=self.device)
+        wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
+        rgb = torch.zeros(H * W, 3, device=self.device) + bg
+        depth = torch.zeros(H * W, device=self.device)
+        acc = torch.zeros(H * W, device=self.device)
+        ids = torch.full((H * W,), 255, dtype=torch.long, device=self.device)
+        if keep:
+            pose = {k: torch.from_numpy(T[k]).float().to(self.device) for k in keep}
+            obj_ids = torch.tensor([inp.objects[k].id for k in keep], device=self.device)
+            for i in range(0, H * W, chunk):
+                dc = dirs[i : i + chunk]
+                R = len(dc)
+                rays = [
+                    ObjectRays(self.fields[k], pose[k].expand(R, 4, 4), torch.ones(R, dtype=torch.bool, device=self.device), wide)
+                    for k in keep
+                ]
+                out: RenderOutput = render(rays, dc, S, None, bg, float(cfg.get("skip_occluded", 0.0)))
+                rgb[i : i + R] = out.rgb
+                acc[i : i + R] = out.acc
+                depth[i : i + R] = out.normalised_depth()
+                ids[i : i + R] = torch.where(out.acc > 0.5, obj_ids[out.log_seg.argmax(1)], torch.full_like(ids[i : i + R], 255))
+        return {
+            "rgb": rgb.clamp(0, 1).reshape(H, W, 3).cpu().numpy(),
+            "depth": depth.reshape(H, W).cpu().numpy(),
+            "acc": acc.reshape(H, W).cpu().numpy(),
+            "ids": ids.reshape(H, W).cpu().numpy().astype(np.uint8),
+        }
+
+
+def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> TrainedRun:
+    """Load an ``osn train`` run directory (its last checkpoint) for inference."""
+    run = Path(run_dir)
+    ckpt_path = run / "checkpoint.pt"
+    if not ckpt_path.is_file():
+        raise FileNotFoundError(f"{ckpt_path}: missing (not an osn train run directory, or training has not checkpointed yet)")
+    inputs = load_inputs(run / "inputs")
+    try:
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        cfg = ckpt["config"]
+    except Exception as e:  # a truncated or foreign file
+        raise ValueError(f"{ckpt_path}: not a readable osn checkpoint ({e})") from None
+    dev = torch.device(device)
+    fcfg = FieldConfig(**cfg["field"])
+    fields = []
+    for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
+        f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r)
+        f.load_state_dict(sd)
+        fields.append(f.to(dev).eval())
+    net = None
+    if ckpt.get("net") is not None:
+        net = ScaleNet(inputs.num_objects - 1, cfg["scale_width"], cfg["scale_layers"])
+        net.load_state_dict(ckpt["net"])
+        net = net.to(dev).eval()
+    return TrainedRun(run, inputs, cfg, fields, net, dev, int(ckpt.get("iteration", 0)), float(ckpt.get("elapsed", 0.0)))
