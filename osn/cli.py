@@ -113,8 +113,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="every pycolmap random seed")
 
     from .export import add_export_parser
+    from .train import add_train_parser
 
+    add_train_parser(sub)
     add_export_parser(sub)
+    from .eval_cli import add_eval_parsers
+
+    add_eval_parsers(sub)
     return parser
 
 

@@ -83,8 +83,8 @@ def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Te
     """Trilinear lookup of a channels-last grid ``(R^3, C)`` (x fastest, as ``grid_sample``'s
     W axis, ``align_corners=True``) at points ``xn (N, 3)`` in [-1, 1]; returns ``(N, C)``.
 
-    Eight gathers instead of ``grid_sample``: on CPU its backward is ~3x slower than the
-    ``index_add`` these gathers back-propagate through (measured, 64^3 x 4, 65k points).
+    One gather of the 8 corners instead of ``grid_sample``: on CPU ``grid_sample``'s backward
+    is ~3x slower than the single ``index_add`` this gather back-propagates through.
     """
     r = resolution
     p = (xn.clamp(-1.0, 1.0) + 1.0) * (0.5 * (r - 1))
@@ -92,15 +92,13 @@ def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Te
     f = p - i0
     i0 = i0.long()
     base = (i0[:, 2] * r + i0[:, 1]) * r + i0[:, 0]
-    wx, wy, wz = (f[:, 0], 1 - f[:, 0]), (f[:, 1], 1 - f[:, 1]), (f[:, 2], 1 - f[:, 2])
-    out = None
-    for dz in (0, 1):
-        for dy in (0, 1):
-            wzy = wz[1 - dz] * wy[1 - dy]
-            for dx in (0, 1):
-                term = grid[base + (dz * r * r + dy * r + dx)] * (wzy * wx[1 - dx])[:, None]
-                out = term if out is None else out + term
-    return out
+    offs = torch.tensor([dz * r * r + dy * r + dx for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], device=xn.device)
+    wx = torch.stack([1 - f[:, 0], f[:, 0]], -1)
+    wy = torch.stack([1 - f[:, 1], f[:, 1]], -1)
+    wz = torch.stack([1 - f[:, 2], f[:, 2]], -1)
+    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8, 1)
+    vals = grid[(base[:, None] + offs).reshape(-1)].view(-1, 8, grid.shape[1])
+    return (vals * w).sum(1)
 
 
 class DenseGridField(Field):

@@ -59,14 +59,16 @@ def sample_accuracy(seg: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (seg == gt[None]).double().mean(1)
 
 
-def validity_labels(accuracy: torch.Tensor, tolerance: float = 0.0, topk: int = 1) -> tuple[torch.Tensor, bool]:
+def validity_labels(accuracy: torch.Tensor, tolerance: float = 0.0, topk: int = 1, noise_floor: float = 0.0) -> tuple[torch.Tensor, bool]:
     """0/1 label per scale sample from its accuracy on the batch's contested rays (Eq. 13).
 
-    A sample is valid when ``accuracy >= 1 - tolerance``. When no sample passes, the ``topk``
-    best samples are labelled valid (the public code's fallback: the network keeps a positive
-    class and is pulled toward the best configurations seen). Returns ``(labels, fell_back)``.
+    A sample is valid when its error rate ``1 - accuracy`` is at most ``noise_floor +
+    tolerance``. ``noise_floor`` is the error rate no scale vector avoids (learned geometry is
+    not exact: rays that contradict each other); with exact depths it is 0. When no sample
+    passes, the ``topk`` best samples are labelled valid (the public code's fallback: the
+    network keeps a positive class). Returns ``(labels, fell_back)``.
     """
-    labels = (accuracy >= 1.0 - tolerance - 1e-12).to(torch.float32)
+    labels = (1.0 - accuracy <= noise_floor + tolerance + 1e-12).to(torch.float32)
     if labels.sum() > 0 or topk <= 0:
         return labels, False
     idx = torch.topk(accuracy, min(topk, accuracy.numel())).indices
@@ -75,7 +77,13 @@ def validity_labels(accuracy: torch.Tensor, tolerance: float = 0.0, topk: int = 
 
 
 def softz_labels(
-    depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tensor, sbar: torch.Tensor, tolerance: float = 0.0, topk: int = 1
+    depth: torch.Tensor,
+    covered: torch.Tensor,
+    gt: torch.Tensor,
+    sbar: torch.Tensor,
+    tolerance: float = 0.0,
+    topk: int = 1,
+    noise_floor: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, bool]:
     """Labels of ``H`` scale samples from one depth render of a ray batch.
 
@@ -86,5 +94,5 @@ def softz_labels(
     contested = gt_cov & (covered.sum(1) >= 2)
     seg = implied_segmentation(depth[contested], covered[contested], sbar)
     acc = sample_accuracy(seg, gt[contested])
-    labels, fell_back = validity_labels(acc, tolerance, topk)
+    labels, fell_back = validity_labels(acc, tolerance, topk, noise_floor)
     return labels, acc, fell_back

@@ -1,0 +1,660 @@
+"""Joint optimisation of the per-object fields and the object scale network (paper section 3.3).
+
+Schedule (global iteration counter, resumable at any iteration):
+
+1. Stage 1, ``stage1_iters``: every object alone in its own unit, RGB + sparse-depth losses on
+   its masked pixels (Eq. 2).
+2. ``rounds`` alternation rounds, each a *scale phase* then a *field phase*, and a final scale
+   phase. A scale phase renders every object's depth once on all training pixels (the soft
+   Z-buffer's per-object depths, Eq. 17), then trains the scale network on ``H`` sampled scale
+   vectors per step labelled by the depth order they imply (Eq. 11-13, 18) with BCE-with-logits.
+   A field phase composites all objects scaled by one valid scale vector per step (score above
+   ``valid_threshold``; the best candidate with a logged warning when none is) with RGB,
+   scaled-depth and segmentation losses (weights 1, 1, 0.01; Eq. 8-10).
+   The scale phase comes first in a round so field phases never sample from an untrained
+   network (in the paper's order the first field phase would); the final scale phase fits the
+   network to the final fields.
+
+A single-object scene has no scale phases and no scale network. Objects absent from a frame
+are never evaluated on its rays; no depth loss is used when the inputs carry no sparse depth.
+
+Run directory: ``config.yaml``, ``inputs/`` (the per-object inputs used), ``checkpoint.pt``
+(atomic, every ``checkpoint_every`` iterations and at the end; has every RNG state, so
+``--resume`` reproduces an uninterrupted run bit for bit), ``metrics.jsonl`` (one JSON line per
+evaluation: wall time, iteration, phase, losses, training PSNR and with ground truth the
+valid-set precision / recall / IoU and the relative scale-interval error).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+
+from benchgen import dataset as D
+from benchgen.cameras import pixel_rays
+
+from .fields import Field, FieldConfig, make_field
+from .inputs import SceneInputs, load_inputs, oracle_inputs, save_inputs
+from .scale_net import ScaleNet, full_sbar, sample_valid
+from .softz import implied_segmentation, sample_accuracy, softz_labels
+from .volume import ObjectRays, RenderOutput, render
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (stored as ``config.yaml`` in the run).
+
+    Iteration counts are per phase; ``rays`` counts are per step. See the module docstring.
+    """
+
+    seed: int = 0
+    field: FieldConfig = field(default_factory=FieldConfig)
+    stage1_iters: int = 600
+    rounds: int = 5
+    field_iters: int = 300
+    scale_iters: int = 150
+    final_scale_iters: int = 300
+    rays_per_object: int = 512
+    rays: int = 1024
+    depth_rays: int = 128
+    samples: int = 32
+    skip_occluded: float = 1e-3
+    w_rgb: float = 1.0
+    w_depth: float = 1.0
+    w_seg: float = 0.01
+    scale_width: int = 64
+    scale_layers: int = 4
+    scale_lr: float = 1e-3
+    scale_samples: int = 256
+    label_rays: int = 8192
+    label_tolerance: float = 2e-3
+    label_topk: int = 4
+    label_erode: int = 1
+    label_stride: int = 2
+    coverage_threshold: float = 0.5
+    valid_threshold: float = 0.95
+    candidates: int = 256
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    eval_every: int = 200
+    eval_pixels: int = 4096
+    iou_samples: int = 20000
+    checkpoint_every: int = 500
+    device: str = "auto"
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
+        d = dict(d or {})
+        _check_keys(cls, d, "training")
+        fd = d.pop("field", {}) or {}
+        _check_keys(FieldConfig, fd, "field")
+        if "background" in d:
+            d["background"] = tuple(float(x) for x in d["background"])
+        return cls(field=FieldConfig(**fd), **d)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "TrainConfig":
+        return cls.from_dict(yaml.safe_load(Path(path).read_text()) or {})
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["background"] = list(self.background)
+        return d
+
+
+def _check_keys(cls: type, d: dict[str, Any], what: str) -> None:
+    """Reject misspelt config keys instead of silently ignoring them."""
+    unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+    if unknown:
+        raise ValueError(f"unknown {what} config keys: {sorted(unknown)}")
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """CUDA when available (or asked for), else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+# --------------------------------------------------------------------------------------------
+# Tensors of the inputs
+# --------------------------------------------------------------------------------------------
+
+
+class SceneTensors:
+    """The inputs as device tensors, indexed by object *position* k (``inputs.objects[k]``)."""
+
+    def __init__(self, inputs: SceneInputs, device: torch.device) -> None:
+        self.inputs = inputs
+        self.device = device
+        T, H, W = inputs.images.shape[:3]
+        self.T, self.H, self.W, self.K = T, H, W, inputs.num_objects
+        self.images = torch.from_numpy(inputs.images).to(device).float().reshape(T, H * W, 3) / 255.0
+        pos_of_id = np.full(256, -1, dtype=np.int64)
+        for k, o in enumerate(inputs.objects):
+            pos_of_id[o.id] = k
+        self.labels = torch.from_numpy(pos_of_id[inputs.masks.reshape(T, H * W)]).to(device)  # -1 = none
+        _, d = pixel_rays(inputs.K, np.eye(4), W, H)
+        self.dirs = torch.from_numpy(d).float().to(device)  # (HW, 3), camera frame, unit z
+        self.anchor = next(k for k, o in enumerate(inputs.objects) if o.id == inputs.anchor)
+        self.poses = torch.eye(4, device=device).repeat(self.K, T, 1, 1)
+        self.present = torch.zeros(self.K, T, dtype=torch.bool, device=device)
+        self.t_range = torch.zeros(self.K, 2, device=device)  # object-unit planar depth range
+        sp_frame, sp_pix, sp_depth, sp_obj = [], [], [], []
+        for k, o in enumerate(inputs.objects):
+            fr = torch.from_numpy(o.frames).long().to(device)
+            self.poses[k, fr] = torch.from_numpy(o.cam_to_obj).float().to(device)
+            self.present[k, fr] = True
+            self.t_range[k] = torch.tensor([0.5 * o.near, 2.0 * o.far])
+            for slot, t in enumerate(o.frames):
+                pix, dep = o.sparse_pix[slot], o.sparse_depth[slot]
+                if len(dep) == 0:
+                    continue
+                sp_frame.append(np.full(len(dep), t))
+                sp_pix.append(pix[:, 1] * W + pix[:, 0])
+                sp_depth.append(dep)
+                sp_obj.append(np.full(len(dep), k))
+        cat = lambda xs, dt: torch.from_numpy(np.concatenate(xs) if xs else np.zeros(0)).to(device, dt)  # noqa: E731
+        self.sp_frame, self.sp_pix = cat(sp_frame, torch.long), cat(sp_pix, torch.long)
+        self.sp_depth, self.sp_obj = cat(sp_depth, torch.float32), cat(sp_obj, torch.long)
+        # Per object: flat (frame * HW + pixel) indices of its masked pixels and of its sparse depths.
+        flat_labels = self.labels.reshape(-1)
+        self.obj_pixels = [torch.nonzero(flat_labels == k)[:, 0] for k in range(self.K)]
+        self.obj_sparse = [torch.nonzero(self.sp_obj == k)[:, 0] for k in range(self.K)]
+        self.ranges = torch.from_numpy(inputs.scale_ranges()).to(device, torch.float64)
+
+    @property
+    def has_depth(self) -> bool:
+        return self.sp_depth.numel() > 0
+
+    def object_rays(self, fields: list[Field], frames: torch.Tensor, sbar: torch.Tensor, objects: list[int] | None = None) -> list[ObjectRays]:
+        """Per-object views of rays from training ``frames (R,)`` for configuration ``sbar (K,)``."""
+        out = []
+        for k in objects if objects is not None else range(self.K):
+            s = sbar[k].float()
+            P = self.poses[k, frames].clone()
+            P[:, :3, :3] = P[:, :3, :3] / s  # cam_to_obj_k @ diag(1/s): scaling about the camera
+            out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s))
+        return out
+
+
+def psnr(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
+# --------------------------------------------------------------------------------------------
+# Trainer
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Phase:
+    name: str  # "stage1", "scale", "fields"
+    start: int
+    end: int
+    round: int
+
+
+def build_schedule(cfg: TrainConfig, num_objects: int) -> list[Phase]:
+    """Phases in order; a single object has no scale phases."""
+    phases: list[Phase] = []
+    it = 0
+
+    def add(name: str, n: int, r: int) -> None:
+        nonlocal it
+        if n > 0:
+            phases.append(Phase(name, it, it + n, r))
+            it += n
+
+    add("stage1", cfg.stage1_iters, 0)
+    for r in range(1, cfg.rounds + 1):
+        if num_objects > 1:
+            add("scale", cfg.scale_iters, r)
+        add("fields", cfg.field_iters, r)
+    if num_objects > 1:
+        add("scale", cfg.final_scale_iters, cfg.rounds + 1)
+    return phases
+
+
+class Trainer:
+    """Owns the fields, the scale network, their optimisers and the RNG; one ``step`` per iteration."""
+
+    def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
+        self.cfg, self.device = cfg, device
+        self.st = SceneTensors(inputs, device)
+        K = self.st.K
+        torch.manual_seed(cfg.seed)
+        self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k).to(device) for k, o in enumerate(inputs.objects)]
+        self.net = ScaleNet(K - 1, cfg.scale_width, cfg.scale_layers, seed=cfg.seed).to(device) if K > 1 else None
+        self.net_opt = torch.optim.Adam(self.net.parameters(), lr=cfg.scale_lr) if self.net is not None else None
+        self.schedule = build_schedule(cfg, K)
+        self.total = self.schedule[-1].end if self.schedule else 0
+        self.field_total = sum(p.end - p.start for p in self.schedule if p.name != "scale")
+        res = cfg.field.resolutions()
+        self.upsample_at = {int(round(self.field_total * 0.4 * (i + 1) / (len(res) - 1))): r for i, r in enumerate(res[1:])} if len(res) > 1 else {}
+        self.field_iter = 0
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.fallbacks = 0
+        self.cache: dict[str, torch.Tensor] | None = None
+        self.cache_key: int | None = None
+        self.noise_floor = 0.0
+        self.floor_key = -1
+        self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
+        self.bg = torch.tensor(cfg.background, device=device)
+        self._make_field_opt()
+
+    # ---- optimisers and state ------------------------------------------------------------
+
+    def _make_field_opt(self) -> None:
+        groups = [g for f in self.fields for g in f.param_groups(self.cfg.field.lr_grid, self.cfg.field.lr_net)]
+        self.field_opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "iteration": self.iteration,
+            "field_iter": self.field_iter,
+            "elapsed": self.elapsed,
+            "fallbacks": self.fallbacks,
+            "noise_floor": self.noise_floor,
+            "floor_key": self.floor_key,
+            "loss_acc": self.loss_acc,
+            "resolutions": [f.resolution for f in self.fields],
+            "fields": [f.state_dict() for f in self.fields],
+            "field_opt": self.field_opt.state_dict(),
+            "net": self.net.state_dict() if self.net is not None else None,
+            "net_opt": self.net_opt.state_dict() if self.net_opt is not None else None,
+            "gen": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "config": self.cfg.to_dict(),
+        }
+
+    def load_state_dict(self, s: dict[str, Any]) -> None:
+        self.iteration, self.field_iter, self.elapsed = s["iteration"], s["field_iter"], s["elapsed"]
+        self.fallbacks, self.noise_floor, self.floor_key = s["fallbacks"], s["noise_floor"], s["floor_key"]
+        self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
+        for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
+            f.set_resolution(r)
+            f.load_state_dict(sd)
+        self._make_field_opt()
+        self.field_opt.load_state_dict(s["field_opt"])
+        if self.net is not None:
+            self.net.load_state_dict(s["net"])
+            self.net_opt.load_state_dict(s["net_opt"])
+        self.gen.set_state(s["gen"])
+        torch.set_rng_state(s["torch_rng"])
+
+    def phase(self, it: int) -> Phase:
+        return next(p for p in self.schedule if p.start <= it < p.end)
+
+    # ---- ray batches ---------------------------------------------------------------------
+
+    def _randint(self, n: int, size: int) -> torch.Tensor:
+        return torch.randint(n, (size,), generator=self.gen).to(self.device)
+
+    def _depth_loss(self, out_depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return F.mse_loss(out_depth, target) if target.numel() else out_depth.sum() * 0.0
+
+    # ---- stage 1 -------------------------------------------------------------------------
+
+    def step_stage1(self) -> dict[str, float]:
+        st, cfg = self.st, self.cfg
+        losses = {"rgb": 0.0, "depth": 0.0}
+        total = 0.0
+        one = torch.ones(1, device=self.device)
+        for k in range(st.K):
+            pix = st.obj_pixels[k][self._randint(len(st.obj_pixels[k]), cfg.rays_per_object)]
+            frames, p = pix // (st.H * st.W), pix % (st.H * st.W)
+            n_rgb = len(p)
+            if st.has_depth and cfg.w_depth > 0 and len(st.obj_sparse[k]):
+                sp = st.obj_sparse[k][self._randint(len(st.obj_sparse[k]), cfg.depth_rays)]
+                frames = torch.cat([frames, st.sp_frame[sp]])
+                p = torch.cat([p, st.sp_pix[sp]])
+                d_gt = st.sp_depth[sp]
+            else:
+                d_gt = torch.zeros(0, device=self.device)
+            rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
+            out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+            l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
+            l_depth = self._depth_loss(out.depth[n_rgb:], d_gt)
+            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth
+            losses["rgb"] += l_rgb.item() / st.K
+            losses["depth"] += l_depth.item() / st.K
+        self.field_opt.zero_grad(set_to_none=True)
+        total.backward()
+        self.field_opt.step()
+        return losses
+
+    # ---- stage 2: field phase ------------------------------------------------------------
+
+    def sample_configuration(self) -> tuple[torch.Tensor, float]:
+        """One valid scale vector ``(K,)`` for a composite step (anchor = 1; single object = [1])."""
+        if self.net is None:
+            return torch.ones(1, dtype=torch.float64, device=self.device), 1.0
+        sbar, _, p, fell_back = sample_valid(self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold)
+        self.fallbacks += int(fell_back)
+        return sbar, p
+
+    def step_fields(self) -> dict[str, float]:
+        st, cfg = self.st, self.cfg
+        sbar, score = self.sample_configuration()
+        flat = self._randint(st.T * st.H * st.W, cfg.rays)
+        frames, p = flat // (st.H * st.W), flat % (st.H * st.W)
+        n_rgb = len(p)
+        if st.has_depth and cfg.w_depth > 0:
+            sp = self._randint(len(st.sp_depth), cfg.depth_rays)
+            frames = torch.cat([frames, st.sp_frame[sp]])
+            p = torch.cat([p, st.sp_pix[sp]])
+            s_obj = sbar[st.sp_obj[sp]].float()
+            d_gt = st.sp_depth[sp]
+        else:
+            s_obj = d_gt = torch.zeros(0, device=self.device)
+        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
+        # Eq. 9 compares with sbar_k * d_gt; dividing by sbar_k keeps the loss's weight
+        # independent of the sampled scale (same minimiser).
+        l_depth = self._depth_loss(out.depth[n_rgb:] / s_obj, d_gt) if len(d_gt) else out.depth.sum() * 0.0
+        lab = st.labels[frames, p]
+        seg_ok = lab >= 0
+        l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
+        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg
+        self.field_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.field_opt.step()
+        return {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
+
+    # ---- stage 2: scale phase ------------------------------------------------------------
+
+    def _label_pixels(self) -> torch.Tensor:
+        """Flat (frame * HW + pixel) indices of the label pool candidates: every
+        ``label_stride``-th pixel per axis, labelled, away from mask boundaries by ``label_erode``
+        (independent coverage is unreliable on silhouettes)."""
+        st, cfg = self.st, self.cfg
+        lab = st.labels.reshape(st.T, st.H, st.W)
+        keep = lab >= 0
+        e = cfg.label_erode
+        if e > 0:
+            padded = F.pad(lab[:, None].float(), (e, e, e, e), mode="replicate")
+            mx = F.max_pool2d(padded, 2 * e + 1, stride=1)[:, 0]
+            mn = -F.max_pool2d(-padded, 2 * e + 1, stride=1)[:, 0]
+            keep &= (mx == lab) & (mn == lab)
+        grid = torch.zeros(st.H, st.W, dtype=torch.bool, device=self.device)
+        grid[:: cfg.label_stride, :: cfg.label_stride] = True
+        return torch.nonzero((keep & grid).reshape(-1))[:, 0]
+
+    @torch.no_grad()
+    def render_alone_depths(self, flat: torch.Tensor, chunk: int = 8192) -> dict[str, torch.Tensor]:
+        """Every object's independent planar depth (own unit) and coverage on training pixels ``flat``
+        (the soft Z-buffer's per-object depths, rendered once per scale phase)."""
+        st, cfg = self.st, self.cfg
+        HW = st.H * st.W
+        depth = torch.zeros(len(flat), st.K, device=self.device)
+        covered = torch.zeros(len(flat), st.K, dtype=torch.bool, device=self.device)
+        one = torch.ones(st.K, device=self.device)
+        frames_all, pix_all = flat // HW, flat % HW
+        for k in range(st.K):
+            idx = torch.nonzero(st.present[k, frames_all])[:, 0]  # absent frames cost nothing
+            for a in range(0, len(idx), chunk):
+                i = idx[a : a + chunk]
+                out = render(st.object_rays(self.fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.samples, None, None, cfg.skip_occluded)
+                depth[i, k] = out.normalised_depth()
+                covered[i, k] = out.acc > cfg.coverage_threshold
+        return {"depth": depth, "covered": covered}
+
+    def _contested(self, flat: torch.Tensor, depth: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
+        """Mask of rays that can inform the scale network: the labelled object covers the ray,
+        another object does too, and *some* scale vector in the sampling box explains the
+        label (``lo_L d_L < hi_j d_j`` for every other covering j). Rays no sampled scale can
+        explain (geometry noise) would only make every sample look equally wrong."""
+        st = self.st
+        gt = st.labels.reshape(-1)[flat]
+        gt_cov = covered.gather(1, gt[:, None])[:, 0]
+        lo = st.ranges[:, 0].clone()
+        hi = st.ranges[:, 1].clone()
+        lo[st.anchor] = hi[st.anchor] = 1.0
+        best_l = (lo[gt] * depth.gather(1, gt[:, None])[:, 0].double())[:, None]
+        others = torch.where(covered, hi[None] * depth.double(), torch.full_like(depth, float("inf"), dtype=torch.float64))
+        others.scatter_(1, gt[:, None], float("inf"))
+        satisfiable = (best_l < others).all(1)
+        return gt_cov & (covered.sum(1) >= 2) & satisfiable
+
+    def ensure_cache(self, phase: Phase) -> None:
+        """Render the per-object depths at the start of a scale phase (recomputed identically on resume)."""
+        if self.cache_key != phase.start:
+            flat = self._label_pixels()
+            c = self.render_alone_depths(flat)
+            keep = self._contested(flat, c["depth"], c["covered"])
+            self.cache = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep], "key": phase.start}
+            self.cache_key = phase.start
+
+    def step_scale(self, phase: Phase) -> dict[str, float]:
+        self.ensure_cache(phase)
+        cfg, st, c = self.cfg, self.st, self.cache
+        s = torch.rand(cfg.scale_samples, st.K - 1, generator=self.gen).to(self.device)
+        sbar = full_sbar(s, st.ranges, st.anchor)
+        n = len(c["flat"])
+        rays = self._randint(n, min(cfg.label_rays, n)) if n else c["flat"]
+        gt = st.labels.reshape(-1)[c["flat"][rays]]
+        # The noise floor is the lowest error rate any sample reached in this phase so far.
+        seg_err = 1.0 - sample_accuracy(implied_segmentation(c["depth"][rays], c["covered"][rays], sbar), gt)
+        self.noise_floor = min(self.noise_floor, float(seg_err.min())) if c["key"] == self.floor_key else float(seg_err.min())
+        self.floor_key = c["key"]
+        labels, acc, fell_back = softz_labels(c["depth"][rays], c["covered"][rays], gt, sbar, cfg.label_tolerance, cfg.label_topk, self.noise_floor)
+        loss = F.binary_cross_entropy_with_logits(self.net(s), labels.to(self.device))
+        self.net_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.net_opt.step()
+        return {"bce": loss.item(), "valid_frac": float(labels.mean()), "label_fallback": float(fell_back), "contested": float(n), "noise_floor": self.noise_floor}
+
+    # ---- one iteration -------------------------------------------------------------------
+
+    def step(self) -> dict[str, float]:
+        ph = self.phase(self.iteration)
+        if ph.name == "scale":
+            out = self.step_scale(ph)
+        else:
+            if self.field_iter in self.upsample_at:
+                for f in self.fields:
+                    f.set_resolution(self.upsample_at[self.field_iter])
+                self._make_field_opt()  # parameter shapes changed (TensoRF does the same)
+            out = self.step_stage1() if ph.name == "stage1" else self.step_fields()
+            self.field_iter += 1
+        self.iteration += 1
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation against the training video and the exact region
+# --------------------------------------------------------------------------------------------
+
+
+class Evaluator:
+    """Training-view PSNR on a fixed pixel subset and, with ground truth, valid-set accuracy."""
+
+    def __init__(self, trainer: Trainer, dataset_root: str | Path | None) -> None:
+        self.tr = trainer
+        st, cfg = trainer.st, trainer.cfg
+        g = torch.Generator().manual_seed(12345)
+        n = min(cfg.eval_pixels, st.T * st.H * st.W)
+        self.flat = torch.randperm(st.T * st.H * st.W, generator=g)[:n].to(st.device)
+        self.region = None
+        if trainer.net is not None and dataset_root is not None and (Path(dataset_root) / "valid_region.json").exists():
+            self.region = D.load_valid_region(dataset_root)
+            self.s_mc = torch.rand(cfg.iou_samples, st.K - 1, generator=g, dtype=torch.float64)
+            sbar = full_sbar(self.s_mc, st.ranges.cpu(), st.anchor).numpy()
+            self.actual_mc = st.inputs.actual_scales(sbar)
+            full = np.ones((len(sbar), self.region.num_objects))
+            full[:, [o.id for o in st.inputs.objects]] = self.actual_mc
+            self.exact = np.asarray(self.region.contains(full))
+
+    @torch.no_grad()
+    def best_configuration(self) -> torch.Tensor:
+        tr = self.tr
+        if tr.net is None:
+            return torch.ones(1, dtype=torch.float64, device=tr.device)
+        g = torch.Generator().manual_seed(54321)
+        s = torch.rand(4096, tr.st.K - 1, generator=g).to(tr.device)
+        return full_sbar(s[tr.net(s).argmax()][None], tr.st.ranges, tr.st.anchor)[0]
+
+    @torch.no_grad()
+    def __call__(self) -> dict[str, float]:
+        tr, st, cfg = self.tr, self.tr.st, self.tr.cfg
+        frames, p = self.flat // (st.H * st.W), self.flat % (st.H * st.W)
+        sbar = self.best_configuration()
+        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, None, tr.bg, cfg.skip_occluded)
+        m: dict[str, float] = {"psnr": psnr(float(F.mse_loss(out.rgb, st.images[frames, p])))}
+        if st.K > 1:
+            lab = st.labels[frames, p]
+            ok = lab >= 0
+            m["seg_acc"] = float((out.log_seg[ok].argmax(1) == lab[ok]).float().mean())
+            m["sbar_best"] = [float(x) for x in sbar.cpu()]
+        if self.region is not None:
+            learned = (tr.net(self.s_mc.float().to(tr.device)) > 0).cpu().numpy()
+            inter = float(np.sum(learned & self.exact))
+            m["precision"] = inter / max(float(learned.sum()), 1.0)
+            m["recall"] = inter / max(float(self.exact.sum()), 1.0)
+            m["iou"] = inter / max(float(np.sum(learned | self.exact)), 1.0)
+            m["scale_rel_err"] = self._interval_error(learned)
+        return m
+
+    def _interval_error(self, learned: np.ndarray) -> float:
+        """Mean relative error of the learned per-object scale intervals (actual scales, within
+        the sampled box) against the exact region's intervals; 1.0 when either set is empty."""
+        if not learned.any() or not self.exact.any():
+            return 1.0
+        errs = []
+        for k in range(self.tr.st.K):
+            if k == self.tr.st.anchor:
+                continue
+            a, e = self.actual_mc[learned, k], self.actual_mc[self.exact, k]
+            errs += [abs(a.min() - e.min()) / e.min(), abs(a.max() - e.max()) / e.max()]
+        return float(np.mean(errs))
+
+
+# --------------------------------------------------------------------------------------------
+# Running
+# --------------------------------------------------------------------------------------------
+
+
+def _save_checkpoint(path: Path, trainer: Trainer) -> None:
+    buf = io.BytesIO()
+    torch.save(trainer.state_dict(), buf)
+    D.atomic_write_bytes(path, buf.getvalue())
+
+
+def _truncate_metrics(path: Path, iteration: int) -> None:
+    """Drop metric lines written after the checkpoint being resumed (they will be rewritten)."""
+    if not path.exists():
+        return
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln)["iteration"] <= iteration]
+    D.atomic_write_bytes(path, ("\n".join(lines) + "\n" if lines else "").encode())
+
+
+def train(
+    dataset: str | Path | None,
+    out: str | Path,
+    cfg: TrainConfig | None = None,
+    resume: bool = False,
+    inputs: SceneInputs | None = None,
+    max_iterations: int | None = None,
+    progress: bool = True,
+) -> Path:
+    """Train OSN on ``dataset`` (oracle inputs unless ``inputs`` is given) into run directory ``out``.
+
+    ``max_iterations`` stops early after that global iteration (with a checkpoint), as an
+    interruption would; ``resume`` continues from ``out/checkpoint.pt``. Returns ``out``.
+    """
+    from tqdm import tqdm
+
+    out = Path(out)
+    ckpt = out / "checkpoint.pt"
+    if resume:
+        if not ckpt.exists():
+            raise FileNotFoundError(f"{ckpt}: nothing to resume")
+        cfg = TrainConfig.from_yaml(out / "config.yaml")
+        inputs = load_inputs(out / "inputs")
+    else:
+        if ckpt.exists():
+            raise FileExistsError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+        cfg = cfg or TrainConfig()
+        inputs = inputs if inputs is not None else oracle_inputs(dataset)
+        out.mkdir(parents=True, exist_ok=True)
+        save_inputs(out / "inputs", inputs)
+        D.atomic_write_bytes(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False).encode())
+        D.atomic_write_json(out / "run.json", {"dataset": str(dataset) if dataset else None})
+    device = pick_device(cfg.device)
+    trainer = Trainer(inputs, cfg, device)
+    metrics_path = out / "metrics.jsonl"
+    if resume:
+        trainer.load_state_dict(torch.load(ckpt, map_location=device, weights_only=False))
+        _truncate_metrics(metrics_path, trainer.iteration)
+    ds = D.read_json(out / "run.json").get("dataset")
+    evaluator = Evaluator(trainer, ds)
+    stop = min(trainer.total, max_iterations) if max_iterations is not None else trainer.total
+    bar = tqdm(total=trainer.total, initial=trainer.iteration, desc="osn train", disable=not progress, dynamic_ncols=True)
+    t_start = time.perf_counter() - trainer.elapsed
+    acc = trainer.loss_acc
+    while trainer.iteration < stop:
+        ph = trainer.phase(trainer.iteration)
+        losses = trainer.step()
+        for key, v in losses.items():
+            acc.setdefault(key, []).append(v)
+        it = trainer.iteration
+        trainer.elapsed = time.perf_counter() - t_start
+        phase_end = it == ph.end
+        if it % cfg.eval_every == 0 or phase_end or it == trainer.total:
+            rec = {"iteration": it, "wall_time": round(trainer.elapsed, 3), "phase": ph.name, "round": ph.round}
+            rec.update({key: float(np.mean(v)) for key, v in acc.items()})
+            if "rgb" in acc:
+                rec["train_batch_psnr"] = psnr(rec["rgb"])
+            rec.update(evaluator())
+            rec["fallbacks"] = trainer.fallbacks
+            acc.clear()
+            with metrics_path.open("a") as fh:
+                fh.write(json.dumps(rec) + "\n")
+            bar.set_postfix(phase=ph.name, psnr=f"{rec['psnr']:.2f}", iou=f"{rec.get('iou', float('nan')):.3f}")
+        if it % cfg.checkpoint_every == 0 or it == stop:
+            _save_checkpoint(ckpt, trainer)
+        bar.update(1)
+    bar.close()
+    if trainer.fallbacks:
+        log.warning("%d field steps used a fallback scale vector (no candidate above %.2f)", trainer.fallbacks, cfg.valid_threshold)
+    return out
+
+
+def add_train_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``osn train DATASET --out RUN [--config FILE] [--resume]``."""
+    from benchgen.cliutil import subcommand
+
+    def _cmd(args: argparse.Namespace) -> int:
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        cfg = TrainConfig.from_yaml(args.config) if args.config else None
+        run = train(args.dataset, args.out, cfg, resume=args.resume, max_iterations=args.max_iterations)
+        last = Path(run) / "metrics.jsonl"
+        if last.exists():
+            rec = json.loads(last.read_text().splitlines()[-1])
+            summary = {k: rec[k] for k in ("iteration", "wall_time", "psnr", "iou", "precision", "recall", "scale_rel_err") if k in rec}
+            print(json.dumps(summary))
+        return 0
+
+    p = subcommand(sub, "train", _cmd, "train per-object fields and the object scale network on a dataset")
+    p.add_argument("dataset", help="benchgen dataset directory (oracle per-object inputs are derived from it)")
+    p.add_argument("--out", required=True, help="run directory (checkpoint, metrics.jsonl, config, inputs)")
+    p.add_argument("--config", help="YAML training config (default: configs/osn-cpu.yaml values built in)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--max-iterations", type=int, default=None, help="stop after this global iteration (resumable)")
