@@ -41,7 +41,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     res = evaluate(run, args.data, samples, cfg)
     res.timings["total_s"] = time.perf_counter() - t0
     out = Path(args.out) if args.out else Path(args.run) / "report"
-    report = write_report(res, out, Path(args.run), "osn " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 else "osn evaluate")
+    report = write_report(res, out, Path(args.run), "osn " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
     print(results_table(res.table))
     v = res.valid_set
     print(f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f})")
