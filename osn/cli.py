@@ -12,12 +12,6 @@ from typing import Sequence
 from benchgen.cliutil import UserError, run_cli, subcommand
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    print("osn demo: the end-to-end pipeline is not built yet.")
-    print("Built so far: the dataset format and its validator (`benchgen validate DIR`), `osn oracle`, `osn preprocess`.")
-    return 0
-
-
 def _cmd_oracle(args: argparse.Namespace) -> int:
     from .inputs import OracleConfig, oracle_inputs, save_inputs
 
@@ -84,7 +78,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learn all 3D scene configurations that explain one dynamic monocular video.",
     )
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
-    subcommand(sub, "demo", _cmd_demo, "run the whole pipeline on the embedded default scene")
 
     p = subcommand(sub, "oracle", _cmd_oracle, "per-object inputs from a dataset's ground truth (what perfect SfM would give)")
     p.add_argument("dataset", help="benchgen dataset directory")
@@ -120,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .eval_cli import add_eval_parsers
 
     add_eval_parsers(sub)
+    from .demo import add_demo_parser
+
+    add_demo_parser(sub)
     return parser
 
 

@@ -1,0 +1,191 @@
+"""``osn demo``: the whole pipeline on the embedded Gnome-House scene, resumable stage by stage.
+
+benchgen generate -> per-object SfM (pycolmap) and oracle inputs -> train -> sample N ->
+best-of-N evaluation and report -> export -> Blender add-on zip. Each stage records its wall time
+(``WORK/stages.json``); running the same command again skips finished stages and resumes the
+interrupted one (generation and training resume internally).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from benchgen.cliutil import UserError, subcommand
+from .stages import Stage, run_stages
+
+log = logging.getLogger(__name__)
+
+
+def _scaled_config(iterations: int | None, config_file: str | None):
+    """Training config, with every phase length scaled so field iterations total ``iterations``."""
+    from .train import TrainConfig
+
+    cfg = TrainConfig.from_yaml(config_file) if config_file else TrainConfig()
+    if iterations:
+        total = cfg.stage1_iters + cfg.rounds * cfg.field_iters
+        f = iterations / max(total, 1)
+        cfg = replace(
+            cfg,
+            stage1_iters=max(1, round(cfg.stage1_iters * f)),
+            field_iters=max(1, round(cfg.field_iters * f)),
+            scale_iters=max(1, round(cfg.scale_iters * f)),
+            final_scale_iters=max(1, round(cfg.final_scale_iters * f)),
+        )
+    return cfg
+
+
+def run_demo(args: argparse.Namespace) -> dict[str, Any]:
+    """Run (or resume) every stage under ``args.work``; returns the stage records."""
+    work = Path(args.work)
+    dataset, sfm, oracle_dir, run_dir = work / "dataset", work / "sfm", work / "oracle", work / "run"
+    report_dir, export_dir = work / "report", work / "export"
+    state: dict[str, Any] = {}
+
+    def generate() -> dict:
+        from benchgen.generate import generate as gen
+        from benchgen.spec import load_preset, spec_from_dict
+
+        spec = load_preset(args.preset)
+        if args.resolution or args.configs:
+            d = spec.to_dict()
+            if args.resolution:
+                d["resolution"] = [args.resolution, args.resolution]
+            if args.configs:
+                d["configs"] = args.configs
+            spec = spec_from_dict(d, f"{args.preset} (demo overrides)")
+        s = gen(spec, dataset, workers=args.workers, progress=True)
+        if not s.passed:
+            raise UserError(f"{dataset}: the generated benchmark failed its invariance verification (see verification.json)")
+        for line in s.lines():
+            print(f"  {line}")
+        return {"frames_rendered": s.frames_rendered, "render_seconds": s.render_seconds}
+
+    def preprocess() -> dict:
+        from benchgen.dataset import atomic_write_json
+        from .inputs import InputsError, oracle_inputs, save_inputs
+        from .preprocess import PreprocessConfig, preprocess_dataset
+
+        save_inputs(oracle_dir, oracle_inputs(dataset))
+        try:
+            inputs, report = preprocess_dataset(dataset, PreprocessConfig(on_failure="skip"),
+                                                progress=lambda m: print(f"  {m} ...", flush=True))
+        except InputsError as e:
+            if args.inputs == "colmap":
+                raise
+            # The oracle path goes on; the SfM failure is part of the result.
+            print(f"  SfM failed: {e}")
+            return {"sfm_error": str(e)}
+        save_inputs(sfm, inputs)
+        atomic_write_json(sfm / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped})
+        for r in report.objects:
+            if "error" in r:
+                print(f"  SfM dropped object {r['id']} ({r['name']}): {r['error']}")
+            elif "rotation_error_deg_max" in r:
+                print(f"  SfM object {r['id']} ({r['name']}): {100 * r['registered_fraction']:.0f}% of frames, "
+                      f"rotation error max {r['rotation_error_deg_max']:.2f} deg")
+        return {"objects": report.objects, "dropped": report.dropped}
+
+    def train() -> dict:
+        from .inputs import load_inputs
+        from .train import train as train_run
+
+        resume = (run_dir / "checkpoint.pt").exists()
+        cfg = _scaled_config(args.iterations, args.train_config)
+        inputs = None if resume else load_inputs(sfm if args.inputs == "colmap" else oracle_dir)
+        train_run(dataset, run_dir, cfg, resume=resume, inputs=inputs)
+        last = json.loads((run_dir / "metrics.jsonl").read_text().splitlines()[-1])
+        print(f"  training: PSNR {last.get('psnr', float('nan')):.2f} dB, valid-set IoU {last.get('iou', float('nan')):.3f} "
+              f"after {last['wall_time']:.0f} s")
+        return {k: last.get(k) for k in ("psnr", "iou", "wall_time", "iteration")}
+
+    def sample() -> dict:
+        from .evaluate import sample_configurations
+        from .run import load_run
+
+        s = sample_configurations(load_run(run_dir), args.n, args.threshold, args.seed)
+        s.save(run_dir / "samples.npz")
+        return {"n": int(len(s.sbar)), "fell_back": s.fell_back}
+
+    def evaluate() -> dict:
+        from .evaluate import EvalConfig, Samples, evaluate as ev
+        from .report import write_report
+        from .run import load_run
+
+        run = load_run(run_dir)
+        res = ev(run, dataset, Samples.load(run_dir / "samples.npz"), EvalConfig(max_views=args.max_views))
+        write_report(res, report_dir, run_dir, "osn demo " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in sorted(vars(args).items())
+                                                                      if k in ("preset", "resolution", "iterations", "n", "max_views") and v))
+        return {"table": res.table, "valid_set": res.valid_set, "scale_error": res.scale_error}
+
+    def export() -> dict:
+        from .export import export_run
+
+        export_run(run_dir, export_dir, samples=16, seed=args.seed)
+        return {}
+
+    def addon() -> dict:
+        from .addon_build import build_addon_zip
+
+        z = build_addon_zip(work)
+        state["addon"] = str(z)
+        return {"zip": str(z)}
+
+    stages = [
+        Stage("generate", f"benchgen: render the {args.preset} benchmark", generate),
+        Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", preprocess),
+        Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs", train),
+        Stage("sample", f"draw {args.n} valid configurations", sample),
+        Stage("evaluate", "best-of-N evaluation against every ground truth", evaluate),
+        Stage("export", "export volumes, meshes, trajectories and the scale network", export),
+        Stage("addon", "build the Blender add-on zip", addon),
+    ]
+    return run_stages(stages, work)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .report import results_table
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    t0 = time.perf_counter()
+    records = run_demo(args)
+    work = Path(args.work)
+    ev = records["evaluate"]["summary"]
+    print()
+    print(results_table(ev["table"]))
+    v = ev["valid_set"]
+    se = ev["scale_error"]
+    print(f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f}); "
+          f"relative scale error of matches {sum(se) / max(len(se), 1):.3f}")
+    print(f"stage times: " + ", ".join(f"{k} {r['seconds']:.0f} s" for k, r in records.items()))
+    print(f"total this invocation: {time.perf_counter() - t0:.0f} s")
+    print(f"report:  {work / 'report' / 'report.md'}")
+    print(f"export:  {work / 'export'}")
+    print(f"add-on:  {records['addon']['summary']['zip']}  (Blender: Edit > Preferences > Get Extensions > Install from Disk)")
+    return 0
+
+
+def add_demo_parser(sub: argparse._SubParsersAction) -> None:
+    p = subcommand(sub, "demo", _cmd_demo, "run the whole pipeline on the embedded Gnome-House scene (resumable)",
+                   description="Generate the benchmark, preprocess (SfM + oracle), train, sample N configurations, "
+                   "evaluate best-of-N against every ground truth, export for Blender and build the add-on. Run it "
+                   "again to resume: finished stages are skipped.")
+    p.add_argument("--work", default="runs/demo", help="working directory for every output")
+    p.add_argument("--preset", default="gnome-house-demo", help="benchgen preset (see `benchgen presets`)")
+    p.add_argument("--resolution", type=int, default=None, help="square image size (default: the preset's)")
+    p.add_argument("--configs", type=int, default=None, help="ground-truth configurations G (default: the preset's)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="field iterations in total (stage 1 + rounds); every phase is scaled (default: the CPU config's)")
+    p.add_argument("--train-config", help="YAML training config (default: the built-in CPU config)")
+    p.add_argument("--inputs", choices=["oracle", "colmap"], default="oracle",
+                   help="train on oracle per-object inputs (perfect SfM) or on the pycolmap output")
+    p.add_argument("-n", type=int, default=1000, help="number of sampled configurations N")
+    p.add_argument("--threshold", type=float, default=0.5, help="validity threshold of sampling")
+    p.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth (0 = all)")
+    p.add_argument("--workers", type=int, default=2, help="rendering processes for benchgen")
+    p.add_argument("--seed", type=int, default=0, help="seed of sampling and export")
