@@ -412,7 +412,10 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
 
     # Exact re-ranking of the top candidates of every ground truth.
     t0 = time.perf_counter()
-    cand = np.unique(np.argsort(-np.nan_to_num(approx_mean, nan=-np.inf), axis=0)[: cfg.topk].reshape(-1))
+    best_score = int(np.argmax(samples.score))
+    # The highest-scoring sample is always a candidate: best of N can then never lose to it.
+    top = np.argsort(-np.nan_to_num(approx_mean, nan=-np.inf), axis=0)[: cfg.topk].reshape(-1)
+    cand = np.unique(np.concatenate([top, [best_score]]))
     renders: dict[int, dict[str, np.ndarray]] = {}
     exact: dict[int, np.ndarray] = {}
     from tqdm import tqdm
@@ -431,7 +434,6 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
         row = full_metrics(renders[int(match[g])], gt, g, cfg.lpips)
         row.update(sample=int(match[g]), approx_psnr=float(approx_mean[match[g], g]))
         per_gt.append(row)
-    best_score = int(np.argmax(samples.score))
     # Centre of the learned ranges: the middle of each object's span over the valid samples.
     centre = 0.5 * (samples.sbar.min(0) + samples.sbar.max(0))
     baselines = {}
