@@ -97,7 +97,9 @@ def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Te
     wy = torch.stack([1 - f[:, 1], f[:, 1]], -1)
     wz = torch.stack([1 - f[:, 2], f[:, 2]], -1)
     w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8, 1)
-    vals = grid[(base[:, None] + offs).reshape(-1)].view(-1, 8, grid.shape[1])
+    # index_select, not grid[idx]: its backward (index_add) is deterministic on CPU, which
+    # exact resume needs; advanced indexing accumulates in a thread-dependent order.
+    vals = torch.index_select(grid, 0, (base[:, None] + offs).reshape(-1)).view(-1, 8, grid.shape[1])
     return (vals * w).sum(1)
 
 
@@ -255,7 +257,7 @@ class FieldConfig:
     appearance_components: int = 48
     app_dim: int = 27
     hidden: int = 64
-    lr_grid: float = 0.05
+    lr_grid: float = 0.2
     lr_net: float = 1e-3
 
     def resolutions(self) -> list[int]:

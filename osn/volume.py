@@ -73,14 +73,15 @@ def transmittance_weights(optical: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     """Weights and log-weights of ordered samples with optical thickness ``(R, S)`` (>= 0).
 
     ``w_i = T_i (1 - exp(-tau_i))`` with ``log T_i = -sum_{j<i} tau_j`` (exclusive cumsum, no
-    subtraction so no ``inf - inf``). ``log_w`` is ``-inf`` where ``tau_i = 0``.
+    subtraction so no ``inf - inf``). ``log_w`` is floored at ``log(1e-30)`` for the opacity
+    term, so it is finite and its gradient never meets ``log(0)`` (``0 * inf = NaN``).
     """
     tau = torch.nan_to_num(optical, nan=0.0, posinf=MAX_OPTICAL).clamp(0.0, MAX_OPTICAL)
     csum = torch.cumsum(tau, dim=-1)
     log_t = -torch.cat([torch.zeros_like(csum[..., :1]), csum[..., :-1]], dim=-1)
     alpha = -torch.expm1(-tau)
     w = torch.exp(log_t) * alpha
-    log_w = log_t + torch.log(alpha)
+    log_w = log_t + torch.log(alpha.clamp_min(1e-30))
     return w, log_w
 
 
@@ -206,9 +207,8 @@ def render(
     bg = background if background is not None else torch.zeros(3, device=dev)
     rgb = (w[..., None] * col).sum(1) + (1.0 - acc)[:, None] * bg
     depth = (w * t_sorted).sum(1)
-    log_share = torch.stack(
-        [torch.where(obj_id == k, log_w, torch.full_like(log_w, -float("inf"))).logsumexp(1) for k in range(K)], 1
-    )
+    # A finite fill (not -inf): logsumexp's gradient is NaN when all its inputs are -inf.
+    log_share = torch.stack([torch.where(obj_id == k, log_w, torch.full_like(log_w, -1e30)).logsumexp(1) for k in range(K)], 1)
     # eps floor: rays that hit nothing get a uniform, finite segmentation instead of NaN.
     log_share = torch.logaddexp(log_share, torch.full_like(log_share, torch.log(torch.tensor(SEG_EPS)).item()))
     log_seg = log_share - log_share.logsumexp(1, keepdim=True)

@@ -114,6 +114,21 @@ def test_absent_objects_and_empty_rays_are_finite() -> None:
     assert torch.allclose(out.acc, torch.zeros(n)) and torch.allclose(out.rgb, torch.ones(n, 3))
 
 
+def test_gradients_are_finite_with_empty_rays_and_transparent_samples() -> None:
+    """Backward through RGB, depth and the segmentation cross-entropy where some rays hit
+    nothing and some samples are fully transparent (log of a zero opacity)."""
+    n = 16
+    f = DenseGridField(BOX, 4)
+    with torch.no_grad():
+        f.grid[: 32, 0] = -200.0  # softplus -> exactly transparent voxels
+        f.grid[32:, 0] = 5.0
+    hit, miss = _obj(f, 3.0, n), _obj(f, -5.0, n)
+    out = render([hit, miss], _rays(n), 8, generator=torch.Generator().manual_seed(0))
+    loss = out.rgb.sum() + out.depth.sum() + torch.nn.functional.nll_loss(out.log_seg, torch.ones(n, dtype=torch.long))
+    loss.backward()
+    assert torch.all(torch.isfinite(f.grid.grad))
+
+
 def test_skip_occluded_matches_full_render() -> None:
     n = 32
     near = _solid(DenseGridField(BOX, 4), 60.0, (1.0, 0.0, 0.0))
