@@ -30,6 +30,7 @@ import torch
 from benchgen import dataset as D
 from . import metrics as M
 from .run import TrainedRun
+from .scale_net import VALID_THRESHOLD
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,7 @@ class Samples:
             raise ValueError(f"{path}: not an osn samples file ({e})") from None
 
 
-def sample_configurations(run: TrainedRun, n: int, threshold: float = 0.5, seed: int = 0, max_draws: int = 2_000_000) -> Samples:
+def sample_configurations(run: TrainedRun, n: int, threshold: float = VALID_THRESHOLD, seed: int = 0, max_draws: int = 2_000_000) -> Samples:
     """Draw ``n`` scale vectors with validity score above ``threshold`` (rejection sampling).
 
     Candidates are uniform in the normalised box [0, 1)^(K-1). If fewer than ``n`` pass within
@@ -336,7 +337,7 @@ def mean_std(rows: list[dict[str, float]]) -> dict[str, list[float]]:
 
 
 def valid_set_accuracy(run: TrainedRun, region, grid: int = 64, seed: int = 0, max_points: int = 300_000) -> dict[str, float]:
-    """Precision / recall / IoU of the learned valid set (score > 0.5) against the exact region.
+    """Precision / recall / IoU of the learned valid set (score > VALID_THRESHOLD) against the exact region.
 
     Evaluated on a dense grid of the normalised box (cell centres) for up to 3 free objects, on
     ``max_points`` uniform points beyond. Needs the inputs' ground-truth units (oracle or aligned SfM).
@@ -350,7 +351,7 @@ def valid_set_accuracy(run: TrainedRun, region, grid: int = 64, seed: int = 0, m
         s = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
     else:
         s = np.random.default_rng(seed).random((max_points, d))
-    learned = run.scores(s) > 0.5
+    learned = run.scores(s) > VALID_THRESHOLD
     actual = run.inputs.actual_scales(run.sbar(s))
     full = np.ones((len(s), region.num_objects))
     full[:, [o.id for o in run.inputs.objects]] = actual

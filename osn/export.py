@@ -537,41 +537,33 @@ def export_run(
     scale network, the training config), samples every field on a ``resolution^3`` grid
     (default: the field's own resolution), derives the learned valid intervals from the scale
     network, adds the dataset's test rig when the dataset is reachable and ``samples`` valid
-    configurations drawn through the scale network (seeded).
+    configurations drawn through the scale network (seeded) unless ``RUN/samples.npz`` from
+    ``osn sample`` exists, whose configurations are exported instead.
     """
-    import torch
-
-    from .fields import FieldConfig, make_field
-    from .inputs import load_inputs
-    from .scale_net import ScaleNet
+    from .run import load_run
+    from .scale_net import VALID_THRESHOLD
 
     run = Path(run_dir)
-    ckpt_path = run / "checkpoint.pt"
-    if not ckpt_path.is_file():
-        raise FileNotFoundError(f"{ckpt_path}: missing (not an osn train run directory, or training has not checkpointed yet)")
-    inputs = load_inputs(run / "inputs")
-    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    cfg = ckpt["config"]
-    fcfg = FieldConfig(**cfg["field"])
+    trained = load_run(run)
+    inputs = trained.inputs
     grids = {}
-    for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
-        f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r)
-        f.load_state_dict(sd)
-        f.eval()
-        grids[o.id] = field_grids(f, resolution or r)
-        echo(f"export: sampled object {o.id} ({o.name}) at {resolution or r}^3")
-    net = None
-    if ckpt.get("net") is not None:
-        tnet = ScaleNet(len(inputs.objects) - 1, cfg["scale_width"], cfg["scale_layers"])
-        tnet.load_state_dict(ckpt["net"])
-        net = scale_network_from_torch(tnet, cfg["valid_threshold"])
+    for o, f in zip(inputs.objects, trained.fields):
+        grids[o.id] = field_grids(f, resolution or f.resolution)
+        echo(f"export: sampled object {o.id} ({o.name}) at {resolution or f.resolution}^3")
+    # The learned valid set is the classifier's decision (score > 0.5), as in `osn sample` and the
+    # valid-set IoU; training's stricter sampling threshold is a training setting.
+    net = scale_network_from_torch(trained.net, VALID_THRESHOLD) if trained.net is not None else None
     dataset = None
     if (run / "run.json").is_file():
         dataset = D.read_json(run / "run.json").get("dataset")
     test = _test_rig(dataset, len(inputs.timestamps)) if inputs.world_to_anchor is not None else None
     scene = export_scene_from_inputs(inputs, grids, net, test_camera_to_world=test, source=str(run.resolve()))
-    scene.meta.update({"name": run.name, "iteration": int(ckpt.get("iteration", 0)), "dataset": dataset})
-    if samples > 0 and net is not None:
+    scene.meta.update({"name": run.name, "iteration": trained.iteration, "dataset": dataset})
+    if (run / "samples.npz").is_file():  # `osn sample` output, when present, is what gets exported
+        from .evaluate import Samples
+
+        scene.samples = Samples.load(run / "samples.npz").sbar
+    elif samples > 0 and net is not None:
         ranges = np.array([o.scale_range for o in scene.objects])
         anchor_index = [o.is_anchor for o in scene.objects].index(True)
 

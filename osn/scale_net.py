@@ -16,6 +16,11 @@ from .inputs import denormalise_scales
 
 log = logging.getLogger(__name__)
 
+#: Score above which a configuration belongs to the learned valid set (the classifier's decision
+#: boundary): used by sampling, the valid-set accuracy and the export. Training picks its stage-2
+#: configurations with the stricter ``TrainConfig.valid_threshold``.
+VALID_THRESHOLD = 0.5
+
 
 class ScaleNet(nn.Module):
     """MLP with ``layers`` hidden layers of ``width`` (paper: 4 x 64) and a validity logit."""
