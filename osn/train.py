@@ -49,7 +49,7 @@ from benchgen.cameras import pixel_rays
 from .fields import Field, FieldConfig, make_field
 from .inputs import SceneInputs, load_inputs, oracle_inputs, save_inputs
 from .scale_net import ScaleNet, full_sbar, sample_valid
-from .softz import implied_segmentation, sample_accuracy, softz_labels
+from .softz import implied_segmentation, sample_accuracy, validity_labels
 from .volume import ObjectRays, RenderOutput, render
 
 log = logging.getLogger(__name__)
@@ -80,8 +80,8 @@ class TrainConfig:
     scale_width: int = 64
     scale_layers: int = 4
     scale_lr: float = 1e-3
-    scale_samples: int = 256
-    label_rays: int = 8192
+    scale_samples: int = 1024
+    label_rays: int = 4096
     label_tolerance: float = 2e-3
     label_topk: int = 4
     label_erode: int = 1
@@ -254,7 +254,6 @@ class Trainer:
         self.cache: dict[str, torch.Tensor] | None = None
         self.cache_key: int | None = None
         self.noise_floor = 0.0
-        self.floor_key = -1
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
         self.bg = torch.tensor(cfg.background, device=device)
         self._make_field_opt()
@@ -272,7 +271,6 @@ class Trainer:
             "elapsed": self.elapsed,
             "fallbacks": self.fallbacks,
             "noise_floor": self.noise_floor,
-            "floor_key": self.floor_key,
             "loss_acc": self.loss_acc,
             "resolutions": [f.resolution for f in self.fields],
             "fields": [f.state_dict() for f in self.fields],
@@ -286,7 +284,7 @@ class Trainer:
 
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.iteration, self.field_iter, self.elapsed = s["iteration"], s["field_iter"], s["elapsed"]
-        self.fallbacks, self.noise_floor, self.floor_key = s["fallbacks"], s["noise_floor"], s["floor_key"]
+        self.fallbacks, self.noise_floor = s["fallbacks"], s["noise_floor"]
         self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
         for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
             f.set_resolution(r)
@@ -439,7 +437,7 @@ class Trainer:
             flat = self._label_pixels()
             c = self.render_alone_depths(flat)
             keep = self._contested(flat, c["depth"], c["covered"])
-            self.cache = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep], "key": phase.start}
+            self.cache = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
             self.cache_key = phase.start
 
     def step_scale(self, phase: Phase) -> dict[str, float]:
@@ -450,11 +448,14 @@ class Trainer:
         n = len(c["flat"])
         rays = self._randint(n, min(cfg.label_rays, n)) if n else c["flat"]
         gt = st.labels.reshape(-1)[c["flat"][rays]]
-        # The noise floor is the lowest error rate any sample reached in this phase so far.
+        # Noise floor = the batch's best error rate: learned depths have floaters that make some
+        # rays wrong for every scale vector (measured on gnome-house after stage 1: ~15% of
+        # contested rays, even for the ground-truth configurations). Within one batch all
+        # samples share the rays, so "within tolerance of the best" compares like with like.
+        # The pool is already restricted to contested rays (see _contested).
         seg_err = 1.0 - sample_accuracy(implied_segmentation(c["depth"][rays], c["covered"][rays], sbar), gt)
-        self.noise_floor = min(self.noise_floor, float(seg_err.min())) if c["key"] == self.floor_key else float(seg_err.min())
-        self.floor_key = c["key"]
-        labels, acc, fell_back = softz_labels(c["depth"][rays], c["covered"][rays], gt, sbar, cfg.label_tolerance, cfg.label_topk, self.noise_floor)
+        self.noise_floor = float(seg_err.min()) if len(seg_err) else 0.0
+        labels, fell_back = validity_labels(1.0 - seg_err, cfg.label_tolerance, cfg.label_topk, self.noise_floor)
         loss = F.binary_cross_entropy_with_logits(self.net(s), labels.to(self.device))
         self.net_opt.zero_grad(set_to_none=True)
         loss.backward()
