@@ -250,8 +250,8 @@ class FieldConfig:
     """
 
     kind: str = "dense"
-    resolution: int = 96
-    initial_resolution: int = 48
+    resolution: int = 64
+    initial_resolution: int = 32
     upsample_steps: int = 2
     density_components: int = 16
     appearance_components: int = 48

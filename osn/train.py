@@ -60,26 +60,27 @@ class TrainConfig:
     """Everything a training run depends on (stored as ``config.yaml`` in the run).
 
     Iteration counts are per phase; ``rays`` counts are per step. See the module docstring.
+    The defaults are the CPU default (``configs/osn-cpu.yaml``).
     """
 
     seed: int = 0
     field: FieldConfig = field(default_factory=FieldConfig)
-    stage1_iters: int = 600
+    stage1_iters: int = 400
     rounds: int = 5
-    field_iters: int = 300
+    field_iters: int = 100
     scale_iters: int = 150
     final_scale_iters: int = 300
-    rays_per_object: int = 512
+    rays_per_object: int = 384
     rays: int = 1024
-    depth_rays: int = 128
-    samples: int = 32
+    depth_rays: int = 64
+    samples: int = 24
     skip_occluded: float = 1e-3
     w_rgb: float = 1.0
     w_depth: float = 1.0
     w_seg: float = 0.01
     scale_width: int = 64
     scale_layers: int = 4
-    scale_lr: float = 1e-3
+    scale_lr: float = 5e-3
     scale_samples: int = 1024
     label_rays: int = 4096
     label_tolerance: float = 2e-3
@@ -93,7 +94,7 @@ class TrainConfig:
     eval_every: int = 200
     eval_pixels: int = 4096
     iou_samples: int = 20000
-    checkpoint_every: int = 500
+    checkpoint_every: int = 250
     device: str = "auto"
 
     @classmethod
@@ -656,6 +657,6 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     p = subcommand(sub, "train", _cmd, "train per-object fields and the object scale network on a dataset")
     p.add_argument("dataset", help="benchgen dataset directory (oracle per-object inputs are derived from it)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, metrics.jsonl, config, inputs)")
-    p.add_argument("--config", help="YAML training config (default: configs/osn-cpu.yaml values built in)")
+    p.add_argument("--config", help="YAML training config; omitted keys take the CPU defaults (configs/osn-cpu.yaml)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--max-iterations", type=int, default=None, help="stop after this global iteration (resumable)")

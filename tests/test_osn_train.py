@@ -122,3 +122,10 @@ def test_evaluator_is_exact_with_an_oracle_network(tiny_dataset: Path) -> None:
     tr.net = Oracle()
     m = ev()
     assert m["iou"] == 1.0 and m["precision"] == 1.0 and m["recall"] == 1.0 and m["scale_rel_err"] == 0.0
+
+
+def test_built_in_defaults_are_the_cpu_config() -> None:
+    root = Path(__file__).resolve().parents[1]
+    assert TrainConfig() == TrainConfig.from_yaml(root / "configs" / "osn-cpu.yaml")
+    with pytest.raises(ValueError, match="unknown training config keys"):
+        TrainConfig.from_dict({"stage1_iter": 3})
