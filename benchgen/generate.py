@@ -133,7 +133,7 @@ class Worker:
         for f in self.built.scene.train_frames:
             base = self._base_frame(f.name)
             out = self.renderer.render(f.camera_to_world, self.built.poses(f.time_index, scales))
-            res.train_stats.append((f.name, compare_training(base.rgb, base.ids, out.rgb, out.ids)))
+            res.train_stats.append((f.name, compare_training(base.rgb, base.ids, out.rgb, out.ids, base.facing)))
         if task.config:
             scaled = np.abs(np.log(scales) - np.log(np.asarray(task.reference))) > 1e-9
             for name in task.frames:

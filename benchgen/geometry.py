@@ -21,6 +21,12 @@ from .spec import Keyframe, ObjectSpec, Part, SceneSpec, Texture
 
 #: Points sampled on each object's surface for the penetration test (plus its vertices).
 SURFACE_SAMPLES = 3000
+#: Segments around the axis of cylinders and cones.
+REVOLVE_SECTIONS = 48
+#: Longest facet side along a revolved profile, in units of the spacing between sections. Thin
+#: facets cost exactness (see ``revolved_mesh``), many facets cost time: Cycles re-syncs every
+#: moved mesh on each render, and facets of aspect 1 made a gnome-house frame 3x slower.
+MAX_FACET_ASPECT = 4.0
 
 
 def euler_matrix(location: list[float], rotation_deg: list[float]) -> np.ndarray:
@@ -39,16 +45,35 @@ def part_mesh(part: Part) -> trimesh.Trimesh:
     elif part.type == "sphere":
         m = trimesh.creation.icosphere(subdivisions=3, radius=p["radius"])
     elif part.type == "cylinder":
-        m = trimesh.creation.cylinder(radius=p["radius"], height=p["height"], sections=48)
+        r, h = p["radius"], p["height"]
+        m = revolved_mesh([[0, -h / 2], [r, -h / 2], [r, h / 2], [0, h / 2]])
     elif part.type == "cone":
-        m = trimesh.creation.cone(radius=p["radius"], height=p["height"], sections=48)
-        m.apply_translation([0, 0, -p["height"] / 2])  # centred like the cylinder
+        r, h = p["radius"], p["height"]
+        m = revolved_mesh([[0, -h / 2], [r, -h / 2], [0, h / 2]])  # centred like the cylinder
     elif part.type == "torus":
         m = trimesh.creation.torus(major_radius=p["major_radius"], minor_radius=p["minor_radius"], major_sections=48, minor_sections=24)
     else:  # spec.py rejects unknown types; this guards programmatic use
         raise ValueError(f"unknown part type {part.type!r}")
     m.apply_transform(euler_matrix(part.location, part.rotation))
     return m
+
+
+def revolved_mesh(profile: list[list[float]], sections: int = REVOLVE_SECTIONS) -> trimesh.Trimesh:
+    """Closed surface of revolution about z of a ``(radius, z)`` profile, without long thin facets.
+
+    Each profile segment is split into pieces no longer than ``MAX_FACET_ASPECT`` times the
+    spacing between sections at the largest radius. Why: Cycles stores non-instanced meshes in world space, so a rescaled object's
+    vertices are rounded anew; a long thin facet (trimesh's cylinder side: 0.5 m x 4 mm for a thin
+    pole) turns that rounding into a tilt of its plane and hit points up to 2e-5 m off along the
+    facet, which the texture turns into colour differences above the invariance tolerance.
+    """
+    prof = np.asarray(profile, dtype=np.float64)
+    step = MAX_FACET_ASPECT * 2 * np.pi * prof[:, 0].max() / sections
+    pts = [prof[0]]
+    for a, b in zip(prof[:-1], prof[1:]):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
+        pts.extend(a + (b - a) * (np.arange(1, n + 1)[:, None] / n))
+    return trimesh.creation.revolve(np.array(pts), sections=sections)
 
 
 def part_contains(part: Part, points: np.ndarray) -> np.ndarray:

@@ -7,10 +7,17 @@ moves the camera and the objects between renders. Choices that keep the benchmar
 * emission-only materials whose colour is an object-space procedural texture times a fixed
   function of the world normal: scaling an object about the camera centre leaves every camera
   ray's colour unchanged (no lights, shadows or bounces, ``max_bounces = 0``);
+* pixel-centre rays: a pixel filter of ``PIXEL_FILTER_WIDTH`` px puts every sample on the pixel
+  centre, so colour, depth and object index of a pixel all come from the same ray (the one the
+  exact bounds are computed from), as in NeRF-style renderers. Cycles' default (Blackman-Harris,
+  1.5 px) mixes rays up to 0.75 px off-centre into a pixel's colour: neither the bounds nor the
+  ids constrain those rays, and near silhouettes they hit surfaces at grazing angles;
+* band-limited textures (``TEXTURE_OCTAVES``, node scale 1): colour must not vary much below the
+  pixel scale, because a rescaled object's hit points move by float32 rounding (~1e-7 m, up to
+  ~1e-4 m at grazing angles) and the texture gradient multiplies that into a colour difference;
 * no denoiser, no adaptive sampling, fixed seed, Standard view transform, no dither;
-* depth (planar) and object index come from the view-layer passes of a multilayer EXR written
-  to a temporary directory (``Render Result`` pixels are empty in background mode). Both passes
-  come from one ray per pixel, so ids and per-object depths describe the same ray.
+* depth (planar), object index and normal come from the view-layer passes of a multilayer EXR
+  written to a temporary directory (``Render Result`` pixels are empty in background mode).
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import fov_from_intrinsics, opengl_from_opencv
+from .cameras import fov_from_intrinsics, opengl_from_opencv, pixel_rays
 from .dataset import NO_OBJECT
 from .geometry import BuiltScene, ObjectGeometry
 from .spec import Texture
@@ -34,15 +41,29 @@ from .spec import Texture
 SHADE_DIRECTION = np.array([0.35, -0.55, 0.76])
 #: Depth values at or above this are the background (Cycles writes 1e10).
 BACKGROUND_DEPTH = 1e9
+#: Pixel filter width (px). Tiny, so that every sample is (to 0.005 px) the pixel-centre ray:
+#: the colour is then a function of exactly the ray behind the depth and index passes, which
+#: makes the per-pixel bounds exact and tight for the colour too. Extra samples only repeat that
+#: ray, so 1 sample per pixel is exact; the price is aliasing (no anti-aliasing at silhouettes).
+PIXEL_FILTER_WIDTH = 0.01
+#: Fractal noise octaves above the base frequency (Blender's default detail is 2, the old value 8
+#: put the finest octave at 0.1 mm, far below a pixel): 3 octaves = features down to 1/8 of the
+#: base wavelength, about a pixel at 128 px for the presets' scales.
+TEXTURE_OCTAVES = 3.0
 
 
 @dataclass
 class RenderOutput:
-    """One rendered view: scene-linear RGB, planar depth (+inf = nothing), ids (255 = nothing)."""
+    """One rendered view: scene-linear RGB, planar depth (+inf = nothing), ids (255 = nothing).
+
+    ``facing`` is ``|cos|`` of the angle between the pixel-centre ray and the surface normal
+    (0 where nothing is hit): float rounding of hit points grows like ``1 / facing``.
+    """
 
     rgb: np.ndarray
     depth: np.ndarray
     ids: np.ndarray
+    facing: np.ndarray | None = None
 
     def rgb8(self) -> np.ndarray:
         return linear_to_srgb8(self.rgb)
@@ -105,6 +126,7 @@ class Renderer:
         sc.cycles.use_denoising = False
         sc.cycles.max_bounces = 0
         sc.cycles.seed = spec.seed
+        sc.cycles.filter_width = PIXEL_FILTER_WIDTH
         sc.render.resolution_x, sc.render.resolution_y = spec.width, spec.height
         sc.render.resolution_percentage = 100
         sc.render.dither_intensity = 0.0
@@ -115,6 +137,7 @@ class Renderer:
         vl = sc.view_layers[0]
         vl.use_pass_z = True
         vl.use_pass_object_index = True
+        vl.use_pass_normal = True
         im = sc.render.image_settings
         im.media_type = "MULTI_LAYER_IMAGE"
         im.file_format = "OPEN_EXR_MULTILAYER"
@@ -172,7 +195,9 @@ class Renderer:
             return m.outputs[0]
 
         noise = N("ShaderNodeTexNoise")
-        noise.inputs["Detail"].default_value = 8.0
+        # Node scale 1: the spec's `scale` (the mapping) is the frequency in cycles per metre.
+        noise.inputs["Scale"].default_value = 1.0
+        noise.inputs["Detail"].default_value = TEXTURE_OCTAVES
         noise.inputs["Roughness"].default_value = 0.65
         L(vec, noise.inputs["Vector"])
         if tex.kind == "noise":
@@ -186,6 +211,7 @@ class Renderer:
             base = pat.outputs["Color"]
         else:  # voronoi
             pat = N("ShaderNodeTexVoronoi")
+            pat.inputs["Scale"].default_value = 1.0
             L(vec, pat.inputs["Vector"])
             base = ramp(pat.outputs["Distance"])
         # Fine noise detail on every kind, so that feature detectors find corners everywhere.
@@ -235,11 +261,18 @@ class Renderer:
             self.bpy.ops.render.render(write_still=True)
         self.render_seconds += time.perf_counter() - t0
         self.render_calls += 1
-        return read_multilayer_exr(self._exr)
+        out, normal = read_multilayer_exr(self._exr)
+        _, dirs = pixel_rays(self.built.scene.intrinsics.matrix(), camera_to_world, self.built.spec.width, self.built.spec.height)
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        out.facing = np.abs(np.einsum("pc,pc->p", normal.reshape(-1, 3), dirs)).reshape(out.ids.shape).astype(np.float32)
+        return out
 
 
-def read_multilayer_exr(path: str) -> RenderOutput:
-    """Read Combined, Depth and Object Index passes and convert to dataset conventions."""
+def read_multilayer_exr(path: str) -> tuple[RenderOutput, np.ndarray]:
+    """Read Combined, Depth, Object Index and Normal passes in dataset conventions.
+
+    Returns the view (``facing`` unset: it needs the camera) and the ``(H, W, 3)`` world normals.
+    """
     import OpenEXR
 
     ch: dict[str, np.ndarray] = {}
@@ -252,4 +285,5 @@ def read_multilayer_exr(path: str) -> RenderOutput:
     depth[depth >= BACKGROUND_DEPTH] = np.inf
     index = np.rint(ch["Object Index.X"]).astype(np.int64)
     ids = np.where(index > 0, index - 1, NO_OBJECT).astype(np.uint8)
-    return RenderOutput(rgb, depth, ids)
+    normal = np.stack([ch["Normal.X"], ch["Normal.Y"], ch["Normal.Z"]], axis=-1).astype(np.float64)
+    return RenderOutput(rgb, depth, ids), normal

@@ -113,7 +113,7 @@ class SceneSpec:
     objects: list[ObjectSpec]
     rig: RigSpec
     resolution: list[int] = field(default_factory=lambda: [128, 128])
-    samples: int = 16
+    samples: int = 1
     configs: int = 50
     margin: float = 0.05
     scale_range: list[float] = field(default_factory=lambda: [0.3, 3.0])
@@ -324,7 +324,7 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         objects=objects,
         rig=rig,
         resolution=res,
-        samples=c.integer(d.get("samples", 16), "samples", 1),
+        samples=c.integer(d.get("samples", 1), "samples", 1),
         configs=c.integer(d.get("configs", 50), "configs", 1),
         margin=c.number(d.get("margin", 0.05), "margin", 0.0),
         scale_range=scale_range,

@@ -5,7 +5,10 @@ pixels within ``TRAIN_MAX_INTERIOR_DIFF`` in linear RGB, at most ``TRAIN_MAX_DIF
 of all pixels off by more than 1/255, instance ids identical) and its test views differ from
 configuration 0's on at least ``TEST_MIN_DIFFERING_FRACTION`` of the pixels where an object whose
 scale differs from configuration 0's is seen (so the configurations are really different scenes).
-Silhouette pixels mix objects and differ by float noise on grazing hits, hence the pixel budget.
+Every pixel is the pixel-centre ray (``benchgen.render``), so identical ids on every pixel already
+prove that no visibility order flipped; the colour checks confirm that shading is local. Float
+rounding of a rescaled object's hit points is amplified by ``1 / cos`` of the incidence angle, so
+silhouettes and grazing hits (outside ``interior_mask``) get the pixel budget, not the 1e-4 limit.
 """
 
 from __future__ import annotations
@@ -20,27 +23,45 @@ TRAIN_PIXEL_TOLERANCE = 1.0 / 255.0
 TEST_MIN_DIFFERING_FRACTION = 0.98
 #: Relative depth change that counts as "different" in a test view.
 TEST_DEPTH_TOLERANCE = 1e-5
+#: Interior pixels see their surface at least this far from grazing (|cos| of the incidence
+#: angle; 0.2 = 78 degrees). Below it, float rounding of the hit point (amplified 5x or more)
+#: times the texture gradient can exceed 1e-4 with no change of visibility (measured on
+#: gnome-house at 128 px: 1.1e-4 at |cos| = 0.007 on the gnome); it removes ~0.1% of pixels.
+INTERIOR_MIN_FACING = 0.2
 
 
-def interior_mask(ids: np.ndarray) -> np.ndarray:
-    """Pixels whose 3x3 neighbourhood (clamped at the border) shows a single object."""
-    p = np.pad(ids, 1, mode="edge")
+def interior_mask(ids: np.ndarray, facing: np.ndarray | None = None) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood shows a single object and whose hit is not grazing.
+
+    Border pixels are never interior: their neighbourhood extends beyond the image, where an
+    occluding edge may lie just outside the frame.
+    """
     H, W = ids.shape
+    p = np.pad(ids.astype(np.int32), 1, constant_values=-1)
     same = np.ones((H, W), dtype=bool)
     for dy in range(3):
         for dx in range(3):
             same &= p[dy : dy + H, dx : dx + W] == ids
+    if facing is not None:
+        same &= facing >= INTERIOR_MIN_FACING
     return same
 
 
-def compare_training(base_rgb: np.ndarray, base_ids: np.ndarray, rgb: np.ndarray, ids: np.ndarray) -> dict[str, Any]:
-    """Statistics of a re-rendered training frame against the base frame (linear RGB floats)."""
+def compare_training(
+    base_rgb: np.ndarray, base_ids: np.ndarray, rgb: np.ndarray, ids: np.ndarray, base_facing: np.ndarray | None = None
+) -> dict[str, Any]:
+    """Statistics of a re-rendered training frame against the base frame (linear RGB floats).
+
+    ``base_facing`` (``RenderOutput.facing`` of the base frame) excludes grazing hits from the
+    interior pixels; without it only the id neighbourhood decides.
+    """
     diff = np.abs(rgb.astype(np.float64) - base_rgb).max(axis=-1)
-    interior = interior_mask(base_ids)
+    interior = interior_mask(base_ids, base_facing)
     return {
         "max_interior_diff": float(diff[interior].max()) if interior.any() else 0.0,
         "differing_fraction": float(np.mean(diff > TRAIN_PIXEL_TOLERANCE)),
         "ids_identical": bool(np.array_equal(ids, base_ids)),
+        "interior_fraction": float(interior.mean()),
     }
 
 
@@ -92,6 +113,7 @@ def summarise(index: int, scales: np.ndarray, train: list[tuple[str, dict[str, A
         "worst_frame": worst[0],
         "max_differing_fraction": worst_frac[1]["differing_fraction"],
         "ids_identical": not bad_ids,
+        "min_interior_fraction": min(s.get("interior_fraction", 1.0) for _, s in train),
         "test_pixels_with_rescaled_objects": seen,
         "test_differing_fraction": frac if index != 0 else None,
         "passed": not failures,
@@ -104,5 +126,6 @@ def thresholds() -> dict[str, float]:
         "train_max_interior_diff": TRAIN_MAX_INTERIOR_DIFF,
         "train_max_differing_fraction": TRAIN_MAX_DIFFERING_FRACTION,
         "train_pixel_tolerance": TRAIN_PIXEL_TOLERANCE,
+        "interior_min_facing": INTERIOR_MIN_FACING,
         "test_min_differing_fraction": TEST_MIN_DIFFERING_FRACTION,
     }

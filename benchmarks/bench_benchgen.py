@@ -2,14 +2,16 @@
 
 Reports (a) wall / sum of pure ``bpy.ops.render.render`` calls (target <= 1.3 with one worker),
 (b) frames per second at 128x128 on gnome-house, (c) growth with G and with resolution (on a
-reduced 5x5 rig so the sweep stays short). Run:
+reduced 5x5 rig so the sweep stays short), and with ``--demo`` (d) the full ``gnome-house-demo``
+generation (15x15, 64 px, G=50) with the load average, since the machine may be shared. Run:
 
-    .venv/bin/python benchmarks/bench_benchgen.py [--configs 2] [--skip-sweep]
+    .venv/bin/python benchmarks/bench_benchgen.py [--configs 2] [--skip-sweep] [--demo]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -32,7 +34,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--configs", type=int, default=2, help="G for the full 15x15 gnome-house run")
     ap.add_argument("--skip-sweep", action="store_true", help="only the full gnome-house run")
+    ap.add_argument("--demo", action="store_true", help="also time the full gnome-house-demo preset (G=50)")
     args = ap.parse_args()
+    if args.demo:
+        before = os.getloadavg()
+        run(load_preset("gnome-house-demo"), "gnome-house-demo 15x15 64px G=50")
+        print(f"load average (1 min) before {before[0]:.2f}, after {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     base = load_preset("gnome-house")
     run(base.with_overrides(configs=args.configs), f"gnome-house 15x15 128px G={args.configs}")
     if args.skip_sweep:
