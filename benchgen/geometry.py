@@ -181,6 +181,10 @@ def rig_frames(spec: SceneSpec, times: np.ndarray) -> list[Frame]:
             eye[2] = rig.height
             split = "train" if v == train_v else "test"
             frames.append(Frame(f"v{v:02d}_t{t:02d}", v, t, split, look_at(eye, target)))
+    test = [i for i, f in enumerate(frames) if f.split == "test"]
+    if 0 < rig.test_views < len(test):
+        keep = {test[i] for i in np.linspace(0, len(test) - 1, rig.test_views).round().astype(int)}
+        frames = [f for i, f in enumerate(frames) if f.split == "train" or i in keep]
     return frames
 
 

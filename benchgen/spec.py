@@ -89,6 +89,8 @@ class RigSpec:
     axis, counter-clockwise), at ``radius`` from the target and height ``height``. The training
     camera at timestamp t is viewpoint ``t % views`` (``diagonal``) or
     ``round(t (views - 1) / (times - 1))`` (``sweep``: one pass along the arc).
+    ``test_views`` > 0 keeps only that many test (view, time) pairs, evenly spread in (time,
+    view) order; 0 keeps all of them (the paper's protocol: 210 for 15 x 15).
     """
 
     views: int = 15
@@ -99,6 +101,7 @@ class RigSpec:
     arc: list[float] = field(default_factory=lambda: [-40.0, 40.0])
     target: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.6])
     train_path: str = "diagonal"
+    test_views: int = 0
 
     def train_view(self, t: int) -> int:
         if self.train_path == "diagonal":
@@ -305,6 +308,7 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         arc=c.vector(rd.get("arc", r.arc), "rig.arc", 2),
         target=c.vector(rd.get("target", r.target), "rig.target", 3),
         train_path=rd.get("train_path", r.train_path),
+        test_views=c.integer(rd.get("test_views", r.test_views), "rig.test_views", 0),
     )
     if rig.train_path not in TRAIN_PATHS:
         raise c.fail("rig.train_path", f"unknown path {rig.train_path!r} (expected one of {', '.join(TRAIN_PATHS)})")

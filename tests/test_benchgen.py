@@ -137,6 +137,7 @@ def test_interior_mask_excludes_borders_silhouettes_and_grazing_hits():
 
 def test_demo_preset_is_gnome_house_at_demo_size():
     demo, full = load_preset("gnome-house-demo").to_dict(), load_preset("gnome-house").to_dict()
+    assert demo["rig"].pop("test_views") == 30 and full["rig"].pop("test_views") == 0
     for key in ("room", "rig", "objects", "configs", "margin", "scale_range", "seed"):
         assert demo[key] == full[key], key
     assert demo["configs"] == 50 and demo["rig"]["views"] == demo["rig"]["times"] == 15
