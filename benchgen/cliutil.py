@@ -13,7 +13,8 @@ class UserError(Exception):
 
 
 #: Exceptions that describe bad input rather than a bug; their message is the whole story.
-USER_ERRORS: tuple[type[BaseException], ...] = (UserError, ValueError, FileNotFoundError, KeyError)
+#: FileExistsError: e.g. ``osn train --out`` naming an existing run without ``--resume``.
+USER_ERRORS: tuple[type[BaseException], ...] = (UserError, ValueError, FileNotFoundError, FileExistsError, KeyError)
 
 
 def run_cli(
@@ -34,6 +35,8 @@ def run_cli(
         if getattr(args, "debug", False):
             traceback.print_exc()
         msg = str(e) if not isinstance(e, KeyError) else f"missing key {e}"
+        # One line even when a library's message (embedded after the file name) spans several.
+        msg = " ".join(part.strip() for part in msg.splitlines() if part.strip())
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return 2
 

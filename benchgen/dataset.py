@@ -514,10 +514,44 @@ def write_frame(
     return paths
 
 
-def read_frame(root: str | Path, frame_name: str, config: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read ``(rgb uint8 (H,W,3), depth float32 (H,W), ids uint8 (H,W))`` of a frame."""
+def read_frame(
+    root: str | Path, frame_name: str, config: int | None = None, scene: Scene | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read ``(rgb uint8 (H,W,3), depth float32 (H,W), ids uint8 (H,W))`` of a frame.
+
+    With ``scene``, also check every image against the manifest (size, instance ids in range)
+    and raise ``DatasetError`` naming the first bad file: readers that stack frames or index
+    objects by id would otherwise fail later with a message that names no file.
+    """
     p = frame_paths(root, frame_name, config)
-    return read_rgb(p.rgb), read_depth(p.depth), read_ids(p.ids)
+    rgb, depth, ids = read_rgb(p.rgb), read_depth(p.depth), read_ids(p.ids)
+    if scene is not None:
+        for problem in (
+            size_problem(p.rgb, rgb.shape[:2], scene),
+            size_problem(p.depth, depth.shape, scene),
+            size_problem(p.ids, ids.shape, scene) or ids_problem(p.ids, ids, scene.num_objects),
+        ):
+            if problem:
+                raise DatasetError(problem)
+    return rgb, depth, ids
+
+
+def size_problem(path: Path, shape: tuple[int, ...], scene: Scene) -> str | None:
+    """One line naming ``path`` when an image of ``shape (H, W)`` does not match the manifest."""
+    if tuple(shape) == (scene.height, scene.width):
+        return None
+    return f"{path}: size {shape[1]}x{shape[0]}, expected {scene.width}x{scene.height} (scene.json)"
+
+
+def ids_problem(path: Path, ids: np.ndarray, num_objects: int) -> str | None:
+    """One line naming ``path`` when instance ids name no object of the manifest."""
+    bad = (ids >= num_objects) & (ids != NO_OBJECT)
+    if not bad.any():
+        return None
+    return (
+        f"{path}: {int(bad.sum())} pixels have ids out of range "
+        f"(found {sorted(set(np.unique(ids[bad]).tolist()))}, objects are 0..{num_objects - 1}, {NO_OBJECT} = none)"
+    )
 
 
 def write_configuration(root: str | Path, config: Configuration) -> None:
@@ -615,33 +649,26 @@ def write_transforms_json(root: str | Path, scene: Scene, test_config: int = 0) 
 
 
 def _check_frame_files(paths: FramePaths, scene: Scene, problems: list[str]) -> None:
-    shape = (scene.height, scene.width)
-    K = scene.num_objects
     try:
         rgb = read_rgb(paths.rgb)
-        if rgb.shape[:2] != shape:
-            problems.append(f"{paths.rgb}: size {rgb.shape[1]}x{rgb.shape[0]}, expected {scene.width}x{scene.height}")
+        if p := size_problem(paths.rgb, rgb.shape[:2], scene):
+            problems.append(p)
     except DatasetError as e:
         problems.append(str(e))
     ids = depth = None
     try:
         ids = read_ids(paths.ids)
-        if ids.shape != shape:
-            problems.append(f"{paths.ids}: shape {ids.shape}, expected {shape}")
+        if p := size_problem(paths.ids, ids.shape, scene):
+            problems.append(p)
             ids = None
-        else:
-            bad = (ids >= K) & (ids != NO_OBJECT)
-            if bad.any():
-                problems.append(
-                    f"{paths.ids}: {int(bad.sum())} pixels have ids out of range "
-                    f"(found {sorted(set(np.unique(ids[bad]).tolist()))}, objects are 0..{K - 1}, {NO_OBJECT} = none)"
-                )
+        elif p := ids_problem(paths.ids, ids, scene.num_objects):
+            problems.append(p)
     except DatasetError as e:
         problems.append(str(e))
     try:
         depth = read_depth(paths.depth)
-        if depth.shape != shape:
-            problems.append(f"{paths.depth}: shape {depth.shape}, expected {shape}")
+        if p := size_problem(paths.depth, depth.shape, scene):
+            problems.append(p)
             depth = None
         elif np.isnan(depth).any():
             problems.append(f"{paths.depth}: {int(np.isnan(depth).sum())} NaN depths")

@@ -159,7 +159,7 @@ def load_ground_truth(root: str | Path, max_views: int = 0) -> GroundTruth:
     if not configs:
         raise ValueError(f"{root}: the dataset has no ground-truth configurations")
     train = sorted(scene.train_frames, key=lambda f: f.time_index)
-    tr = [D.read_frame(root, f.name) for f in train]
+    tr = [D.read_frame(root, f.name, scene=scene) for f in train]
     t_c2w = np.stack([f.camera_to_world for f in train])
     K = scene.intrinsics.matrix()
     G, V = len(configs), len(test)
@@ -170,7 +170,7 @@ def load_ground_truth(root: str | Path, max_views: int = 0) -> GroundTruth:
     for g, cfg in enumerate(configs):
         t_depths = [M.configured_depth(d, i, cfg.scales) for _, d, i in tr]
         for v, f in enumerate(test):
-            rgb[g, v], depth[g, v], ids[g, v] = D.read_frame(root, f.name, g)
+            rgb[g, v], depth[g, v], ids[g, v] = D.read_frame(root, f.name, g, scene=scene)
             mask[g, v] = M.covisibility_mask(
                 depth[g, v], K, f.camera_to_world, t_depths, K, t_c2w,
                 object_ids=np.where(ids[g, v] == D.NO_OBJECT, 0, ids[g, v]),

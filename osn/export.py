@@ -274,7 +274,8 @@ def write_export(out_dir: str | Path, scene: ExportScene, echo: Any = None) -> P
     if out.exists() and not (out / core.MANIFEST_NAME).is_file():
         raise ExportFormatError(f"{out}: exists and is not an OSN export; choose another --out")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    _remove_stale_siblings(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", suffix=".partial", dir=out.parent))
     say = echo or (lambda _msg: None)
     t0 = time.perf_counter()
     try:
@@ -367,6 +368,35 @@ def write_export(out_dir: str | Path, scene: ExportScene, echo: Any = None) -> P
         raise
     say(f"export: wrote {out} in {time.perf_counter() - t0:.1f} s")
     return out / core.MANIFEST_NAME
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def _remove_stale_siblings(out: Path) -> None:
+    """Delete temporary siblings of ``out`` left by a killed export (``kill -9`` skips cleanup).
+
+    ``.NAME.PID.*.partial`` (being written) and ``.NAME.old-PID`` (the previous export during
+    the swap) are removed when process PID no longer exists, so a concurrent export to the same
+    directory keeps its own files.
+    """
+    for p in out.parent.glob(f".{out.name}.*"):
+        rest = p.name[len(out.name) + 2 :]
+        if rest.endswith(".partial"):
+            pid_text = rest.split(".", 1)[0]
+        elif rest.startswith("old-"):
+            pid_text = rest[4:]
+        else:
+            continue
+        if not pid_text.isdigit() or not _pid_alive(int(pid_text)):
+            shutil.rmtree(p, ignore_errors=True)
 
 
 def _swap_into_place(tmp: Path, out: Path) -> None:

@@ -200,6 +200,8 @@ def load_inputs(in_dir: str | Path) -> SceneInputs:
     """Read inputs written by :func:`save_inputs`; raise ``InputsError`` naming the bad file."""
     d = Path(in_dir)
     meta = D.read_json(d / "inputs.json")
+    if not isinstance(meta, dict):
+        raise InputsError(f"{d / 'inputs.json'}: not {INPUTS_FORMAT} v{INPUTS_VERSION} (a JSON {type(meta).__name__}, not an object)")
     if meta.get("format") != INPUTS_FORMAT or meta.get("version") != INPUTS_VERSION:
         raise InputsError(f"{d / 'inputs.json'}: not {INPUTS_FORMAT} v{INPUTS_VERSION} (found {meta.get('format')!r} v{meta.get('version')!r})")
     try:
@@ -209,6 +211,22 @@ def load_inputs(in_dir: str | Path) -> SceneInputs:
         raise InputsError(f"{d / 'inputs.npz'}: missing file") from None
     except Exception as e:
         raise InputsError(f"{d / 'inputs.npz'}: cannot read ({e})") from None
+    try:
+        inputs = _inputs_from(meta, arr)
+    except KeyError as e:
+        # Arrays are named "K", "images", ..., "obj<id>_<what>"; anything else is a JSON key.
+        key = str(e.args[0]) if e.args else "?"
+        npz = key in ("K", "timestamps", "images", "masks") or (key.startswith("obj") and "_" in key)
+        where = d / ("inputs.npz" if npz else "inputs.json")
+        raise InputsError(f"{where}: missing {key!r} (written by another version, or damaged)") from None
+    except (TypeError, ValueError) as e:
+        raise InputsError(f"{d / 'inputs.json'}: malformed ({e})") from None
+    check_inputs(inputs, d)
+    return inputs
+
+
+def _inputs_from(meta: dict[str, Any], arr: dict[str, np.ndarray]) -> SceneInputs:
+    """Assemble :class:`SceneInputs` from the parsed ``inputs.json`` and ``inputs.npz`` arrays."""
     objects = []
     for o in meta["objects"]:
         p = f"obj{o['id']}_"
@@ -229,7 +247,7 @@ def load_inputs(in_dir: str | Path) -> SceneInputs:
                 unit_to_world=o.get("unit_to_world"),
             )
         )
-    inputs = SceneInputs(
+    return SceneInputs(
         width=int(meta["width"]),
         height=int(meta["height"]),
         K=arr["K"],
@@ -244,8 +262,6 @@ def load_inputs(in_dir: str | Path) -> SceneInputs:
         source=meta.get("source", "unknown"),
         meta=meta.get("meta", {}),
     )
-    check_inputs(inputs, d)
-    return inputs
 
 
 def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
@@ -364,7 +380,7 @@ def oracle_inputs(dataset_root: str | Path, cfg: OracleConfig | None = None) -> 
     train = sorted(scene.train_frames, key=lambda f: f.time_index)
     images, depths, masks = [], [], []
     for f in train:
-        rgb, depth, ids = D.read_frame(root, f.name)
+        rgb, depth, ids = D.read_frame(root, f.name, scene=scene)  # names a bad size or unknown id
         images.append(rgb)
         depths.append(depth)
         masks.append(ids)

@@ -23,6 +23,14 @@ from .placement import novel_to_training_camera, object_transforms
 from .scale_net import ScaleNet, full_sbar
 from .volume import ObjectRays, RenderOutput, render
 
+#: Version of ``checkpoint.pt`` this module reads. ``osn train`` checkpoints carry no version
+#: key yet and are read as version 1; a different ``version`` is refused with a clear message.
+CHECKPOINT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A run's ``checkpoint.pt`` is unreadable or from another format (message names the file)."""
+
 
 @dataclass
 class TrainedRun:
@@ -132,19 +140,33 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     inputs = load_inputs(run / "inputs")
     try:
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        cfg = ckpt["config"]
     except Exception as e:  # a truncated or foreign file
-        raise ValueError(f"{ckpt_path}: not a readable osn checkpoint ({e})") from None
+        raise CheckpointError(f"{ckpt_path}: not a readable osn checkpoint ({e})") from None
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{ckpt_path}: not an osn checkpoint (a pickled {type(ckpt).__name__})")
+    version = ckpt.get("version", CHECKPOINT_VERSION)  # checkpoints without a version are version 1
+    if version != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{ckpt_path}: checkpoint version {version!r}; this toolkit reads version {CHECKPOINT_VERSION}")
+    missing = [k for k in ("config", "resolutions", "fields") if k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{ckpt_path}: not an osn checkpoint (missing {', '.join(missing)})")
+    if len(ckpt["fields"]) != inputs.num_objects:
+        raise CheckpointError(f"{ckpt_path}: {len(ckpt['fields'])} fields but {run / 'inputs'} has {inputs.num_objects} objects")
     dev = torch.device(device)
-    fcfg = FieldConfig(**cfg["field"])
-    fields = []
-    for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
-        f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r)
-        f.load_state_dict(sd)
-        fields.append(f.to(dev).eval())
-    net = None
-    if ckpt.get("net") is not None:
-        net = ScaleNet(inputs.num_objects - 1, cfg["scale_width"], cfg["scale_layers"])
-        net.load_state_dict(ckpt["net"])
-        net = net.to(dev).eval()
+    cfg = ckpt["config"]
+    try:  # a checkpoint of another field kind, size or layout
+        fcfg = FieldConfig(**cfg["field"])
+        fields = []
+        for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
+            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r)
+            f.load_state_dict(sd)
+            fields.append(f.to(dev).eval())
+        net = None
+        if ckpt.get("net") is not None:
+            net = ScaleNet(inputs.num_objects - 1, cfg["scale_width"], cfg["scale_layers"])
+            net.load_state_dict(ckpt["net"])
+            net = net.to(dev).eval()
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{ckpt_path}: does not match this toolkit's fields or scale network ({first})") from None
     return TrainedRun(run, inputs, cfg, fields, net, dev, int(ckpt.get("iteration", 0)), float(ckpt.get("elapsed", 0.0)))

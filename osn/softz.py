@@ -44,9 +44,13 @@ def soft_segmentation_log(depth: torch.Tensor, covered: torch.Tensor, sbar: torc
 
     Objects that do not cover the ray get ``-inf``. Rays that no object covers get a uniform
     distribution. The argmax equals :func:`implied_segmentation` (up to exact ties).
+
+    Limit: a scaled depth ``sbar_k d_k`` beyond float64's range (~1.8e308, far outside any
+    scene) is clamped to the largest float, so two such objects tie instead of giving NaN.
     """
-    z = torch.exp(scaled_log_depth(depth, covered, sbar))  # +inf stays +inf
-    logits = -z / temperature
+    log_z = scaled_log_depth(depth, covered, sbar)
+    big = torch.finfo(torch.float64).max
+    logits = torch.where(covered[None], (-torch.exp(log_z) / temperature).clamp_min(-big), torch.full_like(log_z, float("-inf")))
     none = ~covered.any(-1)
     logits = torch.where(none[None, :, None], torch.zeros_like(logits), logits)
     return torch.log_softmax(logits, dim=-1)

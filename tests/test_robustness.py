@@ -1,0 +1,631 @@
+"""Robustness across the pipeline (issue 9): bad inputs, kill -9 faults, extreme and stiff cases.
+
+Bad inputs and faults go through the real command lines (``python -m osn.cli`` / ``python -m
+benchgen.cli`` in a subprocess): one line naming the file and the problem, exit code 2, no
+traceback unless ``--debug``, nothing half-written. Extreme cases test the maths directly.
+``docs/robustness.md`` is the table of every case; ``test_doc_table_names_real_tests`` keeps it
+in step with the tests.
+
+Cost: one tiny training run (real ``tiny`` render, ~18 iterations) shared by the run-directory
+cases and the fault tests; CLI calls run two at a time where they are independent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from benchgen import dataset as D
+from benchgen.spec import PRESET_DIR
+from benchgen.validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
+from osn.evaluate import composite_layers, Layer, masked_mse_matrix, psnr_from_mse, sample_configurations
+from osn.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
+from osn.scale_net import ScaleNet, full_sbar, sample_valid
+from osn.softz import implied_segmentation, soft_segmentation_log
+from osn.volume import transmittance_weights
+from tests.synthetic import write_synthetic_dataset
+
+REPO = Path(__file__).resolve().parents[1]
+DOC = REPO / "docs" / "robustness.md"
+
+#: The smallest training schedule that still has every phase (stage 1, scale, fields, final
+#: scale); a checkpoint every iteration so a kill always has something to resume from.
+TINY_TRAIN = {
+    "stage1_iters": 6, "rounds": 1, "field_iters": 4, "scale_iters": 4, "final_scale_iters": 4,
+    "rays_per_object": 64, "rays": 128, "depth_rays": 16, "samples": 8, "scale_samples": 32,
+    "label_rays": 256, "label_stride": 1, "eval_every": 5, "eval_pixels": 256, "iou_samples": 500,
+    "checkpoint_every": 1, "field": {"kind": "dense", "resolution": 12, "initial_resolution": 12, "upsample_steps": 0},
+}
+TINY_TOTAL = 6 + 4 + 4 + 4
+EVAL_ARGS = ["--no-lpips", "--max-views", "2", "--levels", "4", "--topk", "1"]
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _cmd(tool: str, *args: str | Path) -> list[str]:
+    return [sys.executable, "-m", f"{tool}.cli", *map(str, args)]
+
+
+def _cli(tool: str, *args: str | Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run ``python -m TOOL.cli ARGS`` from the checkout and capture its output."""
+    return subprocess.run(_cmd(tool, *args), cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+def _cli_many(calls: list[tuple[str, ...]]) -> list[subprocess.CompletedProcess]:
+    """Independent CLI calls, two at a time (the suite's 2-core budget; each pays the torch import)."""
+    with ThreadPoolExecutor(max_workers=2) as ex:
+        return list(ex.map(lambda c: _cli(*c), calls))
+
+
+def _assert_user_error(r: subprocess.CompletedProcess, names: str | Path, *phrases: str) -> None:
+    """Exit 2, exactly one stderr line naming ``names`` and every phrase, and no traceback."""
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and not ln.startswith("WARNING")]
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert len(lines) == 1, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    assert str(names) in lines[0], lines[0]
+    for p in phrases:
+        assert p in lines[0], (p, lines[0])
+
+
+def _kill_when(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float = 120) -> bool:
+    """SIGKILL ``proc``'s process group as soon as ``ready()``; False if it exited first."""
+    deadline = time.time() + timeout
+    while time.time() < deadline and proc.poll() is None:
+        if ready():
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return True
+        time.sleep(0.02)
+    proc.wait()
+    return False
+
+
+def _popen(tool: str, *args: str | Path) -> subprocess.Popen:
+    return subprocess.Popen(_cmd(tool, *args), cwd=REPO, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _vdb_payload(path: Path) -> bytes:
+    """A VDB file without the random UUID OpenVDB stamps into every header (bytes 21..56)."""
+    b = path.read_bytes()
+    return b[:21] + b[57:]
+
+
+def _export_fingerprint(export: Path) -> dict[str, str]:
+    """Path -> content hash of every exported file, VDB UUIDs masked, manifest minus VDB hashes."""
+    import hashlib
+
+    out = {}
+    for p in sorted(export.rglob("*")):
+        if not p.is_file():
+            continue
+        rel = p.relative_to(export).as_posix()
+        data = _vdb_payload(p) if p.suffix == ".vdb" else p.read_bytes()
+        if p.name == "osn_export.json":
+            m = json.loads(data)
+            m["files"] = [{k: v for k, v in f.items() if not (f["path"].endswith(".vdb") and k == "sha256")} for f in m["files"]]
+            data = json.dumps(m, sort_keys=True).encode()
+        out[rel] = hashlib.sha256(data).hexdigest()
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Fixtures: a synthetic dataset to break, and one tiny trained run on the real render
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("robust") / "synthetic"
+    write_synthetic_dataset(root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def train_config(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("robust_cfg") / "tiny-train.yaml"
+    path.write_text(yaml.safe_dump(TINY_TRAIN))
+    return path
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_dataset: Path, train_config: Path, tmp_path_factory) -> Path:
+    """An uninterrupted ``osn train`` run (the reference of the kill tests) with ``osn sample`` output."""
+    run = tmp_path_factory.mktemp("robust_run") / "run"
+    r = _cli("osn", "train", tiny_dataset, "--out", run, "--config", train_config)
+    assert r.returncode == 0, r.stderr[-3000:]
+    r = _cli("osn", "sample", run, "-n", "20")
+    assert r.returncode == 0, r.stderr[-3000:]
+    return run
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Bad inputs
+# --------------------------------------------------------------------------------------------
+
+
+def _break_dataset(root: Path, case: str) -> tuple[Path, str]:
+    """Damage a copy of the synthetic dataset; return the file the message must name and a phrase."""
+    scene = D.load_scene(root)
+    paths = D.frame_paths(root, scene.train_frames[0].name)
+    if case == "corrupt_png":
+        paths.rgb.write_bytes(paths.rgb.read_bytes()[:40])
+        return paths.rgb, "cannot read PNG"
+    if case == "truncated_exr":
+        paths.depth.write_bytes(paths.depth.read_bytes()[:30])
+        return paths.depth, "cannot read EXR"
+    if case == "wrong_size":
+        D.write_rgb(paths.rgb, np.zeros((5, 7, 3), np.uint8))
+        return paths.rgb, "size 7x5, expected 24x16"
+    if case == "missing_frame":
+        paths.ids.unlink()
+        return paths.ids, "missing file"
+    if case == "unknown_ids":
+        ids = D.read_ids(paths.ids)
+        ids[3, 3] = 9
+        D.write_ids(paths.ids, ids)
+        return paths.ids, "ids out of range (found [9]"
+    if case == "object_in_no_frame":
+        for f in scene.train_frames:
+            p = D.frame_paths(root, f.name).ids
+            ids = D.read_ids(p)
+            ids[ids == 2] = 1
+            D.write_ids(p, ids)
+        return root, "object 2 (obj2) covers fewer than"
+    raise AssertionError(case)
+
+
+DATASET_CASES = ["corrupt_png", "truncated_exr", "wrong_size", "missing_frame", "unknown_ids", "object_in_no_frame"]
+
+
+@pytest.fixture(scope="module")
+def oracle_on_broken(synthetic: Path, tmp_path_factory) -> dict[str, tuple[subprocess.CompletedProcess, Path, str, Path]]:
+    """``osn oracle`` on one broken copy of the dataset per case (run two at a time)."""
+    base = tmp_path_factory.mktemp("broken")
+    jobs = {}
+    for case in DATASET_CASES:
+        root = base / case / "ds"
+        shutil.copytree(synthetic, root)
+        jobs[case] = (root, *_break_dataset(root, case), base / case / "inputs")
+    results = _cli_many([("osn", "oracle", root, "--out", out) for root, _, _, out in jobs.values()])
+    return {case: (r, named, phrase, out) for (case, (_, named, phrase, out)), r in zip(jobs.items(), results)}
+
+
+@pytest.mark.parametrize("case", DATASET_CASES)
+def test_bad_dataset_files_give_one_line(oracle_on_broken, case: str) -> None:
+    """Corrupt PNG, truncated EXR, wrong size, missing frame, unknown ids, an object in no frame."""
+    r, named, phrase, out = oracle_on_broken[case]
+    _assert_user_error(r, named, phrase)
+    assert not (out / "inputs.json").exists() and not (out / "inputs.npz").exists()
+
+
+def test_debug_flag_shows_the_traceback(synthetic: Path, tmp_path: Path) -> None:
+    root = tmp_path / "ds"
+    shutil.copytree(synthetic, root)
+    named, phrase = _break_dataset(root, "truncated_exr")
+    r = _cli("osn", "oracle", root, "--out", tmp_path / "inputs", "--debug")
+    assert r.returncode == 2 and "Traceback" in r.stderr and str(named) in r.stderr.splitlines()[-1]
+
+
+def test_self_contradicting_spec_is_one_line_and_renders_nothing(tmp_path: Path) -> None:
+    """Two objects placed at the same spot at t = 0 (benchgen generate)."""
+    d = yaml.safe_load((PRESET_DIR / "tiny.yaml").read_text())
+    d["objects"][1]["motion"][0]["location"] = d["objects"][0]["motion"][0]["location"]
+    spec = tmp_path / "bad.yaml"
+    spec.write_text(yaml.safe_dump(d))
+    out = tmp_path / "out"
+    r = _cli("benchgen", "generate", "--spec", spec, "--out", out, "--quiet")
+    _assert_user_error(r, spec, "intersect at time index 0")
+    assert not (out / "configs").exists() and not (out / "scene.json").exists()
+
+
+@pytest.fixture(scope="module")
+def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str, tuple[subprocess.CompletedProcess, Path, str]]:
+    """Run directories from another format version or damaged, each given to ``osn sample``;
+    plus ``osn evaluate`` on a dataset with a corrupt test view and ``osn train`` onto an existing run."""
+    base = tmp_path_factory.mktemp("broken_runs")
+    jobs: dict[str, tuple[tuple[str, ...], Path, str]] = {}
+
+    def copy(case: str) -> Path:
+        run = base / case
+        shutil.copytree(trained, run)
+        (run / "samples.npz").unlink()
+        return run
+
+    run = copy("inputs_version")
+    meta = json.loads((run / "inputs" / "inputs.json").read_text())
+    meta["version"] = 2
+    (run / "inputs" / "inputs.json").write_text(json.dumps(meta))
+    jobs["inputs_version"] = (("osn", "sample", run), run / "inputs" / "inputs.json", "not osn-inputs v1 (found 'osn-inputs' v2)")
+
+    run = copy("inputs_missing_array")
+    z = dict(np.load(run / "inputs" / "inputs.npz"))
+    z.pop("obj1_cam_to_obj")
+    np.savez(run / "inputs" / "inputs.npz", **z)
+    jobs["inputs_missing_array"] = (("osn", "sample", run), run / "inputs" / "inputs.npz", "missing 'obj1_cam_to_obj'")
+
+    run = copy("checkpoint_version")
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    ck["version"] = 2
+    torch.save(ck, run / "checkpoint.pt")
+    jobs["checkpoint_version"] = (("osn", "sample", run), run / "checkpoint.pt", "checkpoint version 2")
+
+    run = copy("checkpoint_truncated")
+    data = (run / "checkpoint.pt").read_bytes()
+    (run / "checkpoint.pt").write_bytes(data[: len(data) // 2])
+    jobs["checkpoint_truncated"] = (("osn", "sample", run), run / "checkpoint.pt", "not a readable osn checkpoint")
+
+    run = copy("checkpoint_other_layout")
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    ck["config"]["field"]["kind"] = "tensorf"  # a TensoRF config with dense-grid weights
+    torch.save(ck, run / "checkpoint.pt")
+    jobs["checkpoint_other_layout"] = (("osn", "sample", run), run / "checkpoint.pt", "does not match")
+
+    data = base / "data_corrupt_test_view"
+    shutil.copytree(tiny_dataset, data)
+    scene = D.load_scene(data)
+    view = D.frame_paths(data, sorted(scene.test_frames, key=lambda f: (f.time_index, f.view))[0].name, 1).rgb
+    view.write_bytes(view.read_bytes()[:50])
+    jobs["evaluate_corrupt_test_view"] = (("osn", "evaluate", trained, "--data", data, "--out", base / "report", *EVAL_ARGS),
+                                          view, "cannot read PNG")
+
+    jobs["train_onto_existing_run"] = (("osn", "train", tiny_dataset, "--out", trained), trained, "already holds a run; pass --resume")
+
+    other = base / "not_an_export"
+    other.mkdir()
+    (other / "keep.txt").write_text("x")
+    jobs["export_onto_other_directory"] = (("osn", "export", trained, "--out", other), other, "is not an OSN export")
+    results = _cli_many([call for call, _, _ in jobs.values()])
+    assert not (base / "report").exists()
+    return {case: (r, named, phrase) for (case, (_, named, phrase)), r in zip(jobs.items(), results)}
+
+
+RUN_CASES = ["inputs_version", "inputs_missing_array", "checkpoint_version", "checkpoint_truncated",
+             "checkpoint_other_layout", "evaluate_corrupt_test_view", "train_onto_existing_run", "export_onto_other_directory"]
+
+
+@pytest.mark.parametrize("case", RUN_CASES)
+def test_foreign_or_damaged_run_directories_give_one_line(broken_runs, case: str) -> None:
+    r, named, phrase = broken_runs[case]
+    _assert_user_error(r, named, phrase)
+    if case.startswith(("inputs", "checkpoint")):
+        assert not (named.parents[1 if case.startswith("inputs") else 0] / "samples.npz").exists()
+    if case == "export_onto_other_directory":
+        assert sorted(p.name for p in named.iterdir()) == ["keep.txt"]
+
+
+# --------------------------------------------------------------------------------------------
+# 2. Faults: kill -9, then the same command again
+# --------------------------------------------------------------------------------------------
+
+
+def _metrics(run: Path) -> list[dict]:
+    return [{k: v for k, v in json.loads(x).items() if k != "wall_time"} for x in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_train_killed_then_resumed_equals_uninterrupted(trained: Path, tiny_dataset: Path, train_config: Path, tmp_path: Path) -> None:
+    run = tmp_path / "killed"
+    proc = _popen("osn", "train", tiny_dataset, "--out", run, "--config", train_config)
+    assert _kill_when(proc, lambda: (run / "checkpoint.pt").exists()), "training ended before it could be killed"
+    killed_at = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
+    assert killed_at < TINY_TOTAL
+    r = _cli("osn", "train", tiny_dataset, "--out", run, "--resume")
+    assert r.returncode == 0, r.stderr[-3000:]
+    a = torch.load(trained / "checkpoint.pt", weights_only=False)
+    b = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert a["iteration"] == b["iteration"] == TINY_TOTAL
+    for fa, fb in zip(a["fields"], b["fields"]):
+        assert all(torch.equal(fa[k], fb[k]) for k in fa)
+    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    assert _metrics(trained) == _metrics(run)
+
+
+def test_sample_and_evaluate_rerun_after_kill_equal_uninterrupted(trained: Path, tiny_dataset: Path, tmp_path: Path) -> None:
+    """``osn sample`` is deterministic and atomic; ``osn evaluate`` killed mid-search leaves no
+    report, and the rerun's numbers equal an uninterrupted evaluation's."""
+    ref_samples = (trained / "samples.npz").read_bytes()
+    r = _cli("osn", "sample", trained, "-n", "20", "--out", tmp_path / "again.npz")
+    assert r.returncode == 0 and (tmp_path / "again.npz").read_bytes() == ref_samples
+    ref, out = tmp_path / "ref", tmp_path / "killed"
+    proc = subprocess.Popen(_cmd("osn", "evaluate", trained, "--data", tiny_dataset, "--out", out, *EVAL_ARGS), cwd=REPO,
+                            start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    with ThreadPoolExecutor(1) as ex:  # the uninterrupted reference runs meanwhile
+        ref_job = ex.submit(_cli, "osn", "evaluate", trained, "--data", tiny_dataset, "--out", ref, *EVAL_ARGS)
+        for line in proc.stdout:
+            if line.startswith("evaluate:"):  # ground truth loaded, the search has begun
+                os.killpg(proc.pid, signal.SIGKILL)
+                break
+        proc.wait()
+        r_ref = ref_job.result()
+    assert proc.returncode == -signal.SIGKILL, "evaluate ended before it could be killed"
+    assert r_ref.returncode == 0, r_ref.stderr[-3000:]
+    assert not (out / "metrics.json").exists() and not (out / "report.md").exists()
+    r = _cli("osn", "evaluate", trained, "--data", tiny_dataset, "--out", out, *EVAL_ARGS)
+    assert r.returncode == 0, r.stderr[-3000:]
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (ref, out))
+    for key in ("table", "per_gt", "valid_set", "scale_error", "extra"):
+        assert a[key] == b[key], key
+    assert set(p.name for p in ref.iterdir()) == set(p.name for p in out.iterdir())
+
+
+def test_export_killed_keeps_previous_export_and_rerun_equals_it(trained: Path, tmp_path: Path) -> None:
+    export = tmp_path / "export"
+    r = _cli("osn", "export", trained, "--out", export, "--samples", "4")
+    assert r.returncode == 0, r.stderr[-3000:]
+    before = _export_fingerprint(export)
+    proc = _popen("osn", "export", trained, "--out", export, "--samples", "4")
+    partial = lambda: any(tmp_path.glob(".export.*.partial"))  # noqa: E731
+    assert _kill_when(proc, partial), "export ended before it could be killed"
+    assert any(tmp_path.glob(".export.*.partial"))  # the kill left its temporary directory...
+    assert _export_fingerprint(export) == before  # ...and the previous export untouched
+    r = _cli("osn", "export", trained, "--out", export, "--samples", "4")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert _export_fingerprint(export) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]  # stale temporaries removed
+
+
+def test_half_written_export_is_rejected_by_the_reader(tmp_path: Path) -> None:
+    """An export with a truncated or missing file (copied while being written, say) names the file."""
+    from blender_addon import osn_core as core
+    from osn.export import write_export
+    from tests.test_export_addon import make_export_scene
+
+    export = tmp_path / "export"
+    write_export(export, make_export_scene())
+    vdb = export / "objects" / "1.vdb"
+    vdb.write_bytes(vdb.read_bytes()[:100])
+    with pytest.raises(core.ExportFormatError, match=re.escape(str(vdb)) + ".*corrupt file"):
+        core.read_export(str(export))
+    (export / "arrays.npz").unlink()
+    with pytest.raises(core.ExportFormatError, match="missing file"):
+        core.read_export(str(export))
+
+
+# --------------------------------------------------------------------------------------------
+# 3. Extreme and stiff cases (the maths, directly)
+# --------------------------------------------------------------------------------------------
+
+LOG_SCALE = st.floats(np.log(1e-3), np.log(1e3))
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), K=st.integers(1, 16))
+def test_valid_region_for_scale_ratios_1e_3_to_1e3(data, K: int) -> None:
+    """Bounds built around a feasible point with slack 1e-9..10 (or unbounded): the point is
+    valid, every interval is finite where constrained and holds the point's scale."""
+    x = np.array(data.draw(st.lists(LOG_SCALE, min_size=K, max_size=K)))
+    x -= x[0]
+    slack = np.array(data.draw(st.lists(st.one_of(st.floats(1e-9, 10.0), st.just(np.inf)), min_size=K * K, max_size=K * K))).reshape(K, K)
+    B = np.exp(x[:, None] - x[None, :] + slack)
+    region = ValidRegion.from_bounds(B, anchor=0)
+    s = np.exp(x)
+    assert region.contains(s)
+    assert np.all(region.intervals[:, 0] < s * (1 + 1e-9)) and np.all(s < region.intervals[:, 1] * (1 + 1e-9))
+    assert not np.any(np.isnan(region.intervals))
+    assert np.all(region.intervals[:, 0] >= 0) and np.all(region.intervals[:, 1] > 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(d=st.floats(1e-3, 1e4), ratio=st.floats(1.0 + 1e-6, 1e4))
+def test_ratio_bounds_for_depths_1e_3_to_1e4(d: float, ratio: float) -> None:
+    """Object 0 in front at depth d, object 1 behind at d * ratio: B_01 = ratio to float precision."""
+    visible = np.zeros((2, 2), np.int64)
+    depths = np.stack([np.full((2, 2), d), np.full((2, 2), d * ratio)]).astype(np.float64)
+    B = accumulate_ratio_bounds(np.full((2, 2), np.inf), visible, depths)
+    assert B[0, 1] == pytest.approx(ratio, rel=1e-12) and B[1, 0] == np.inf
+    region = ValidRegion.from_bounds(B, anchor=0)
+    assert region.intervals[1, 0] == pytest.approx(1 / ratio, rel=1e-12) and region.intervals[1, 1] == np.inf
+
+
+def test_never_occluded_region_is_the_whole_range(tmp_path: Path) -> None:
+    """No pair constrains another: every positive scale vector is valid, and the open intervals
+    (0, inf) survive the JSON round trip (stored as null)."""
+    region = ValidRegion.from_bounds(np.full((3, 3), np.inf), anchor=0)
+    assert np.array_equal(region.intervals, [[1, 1], [0, np.inf], [0, np.inf]])
+    assert np.all(region.contains(np.array([[1, 1e-300, 1e300], [1, 1e3, 1e-3]])))
+    D.write_valid_region(tmp_path, region)
+    back = D.load_valid_region(tmp_path, 3)
+    assert np.array_equal(back.intervals, region.intervals) and np.array_equal(back.ratio_bounds, region.ratio_bounds)
+
+
+def test_always_occluded_gives_a_tiny_but_exact_region() -> None:
+    """Mutual occlusion leaves a sliver 1e-9 wide in log scale: still non-empty and exact."""
+    eps = 1e-9
+    B = np.array([[np.inf, 1.0 + eps], [1.0, np.inf]])  # 1 < s_0 / s_1 < 1 + eps
+    region = ValidRegion.from_bounds(B, anchor=0)
+    lo, hi = region.intervals[1]
+    assert 0 < lo < hi and hi - lo == pytest.approx(eps, rel=1e-3)
+    assert region.contains(np.array([1.0, (lo + hi) / 2]))
+    assert not region.contains(np.array([1.0, hi * (1 + 1e-6)])) and not region.contains(np.array([1.0, lo * (1 - 1e-6)]))
+
+
+def test_contradictory_and_identical_objects_name_the_objects() -> None:
+    """Where the maths has no answer the code says so: contradicting constraints, and two
+    identical coincident objects (each in front of the other: s_0/s_1 < 1 and s_1/s_0 < 1)."""
+    with pytest.raises(EmptyRegionError, match=r"objects \[0, 1\]"):
+        ValidRegion.from_bounds(np.array([[np.inf, 0.5], [1.5, np.inf]]))
+    visible = np.array([[0, 1]])
+    same = np.ones((2, 1, 2))
+    B = accumulate_ratio_bounds(np.full((2, 2), np.inf), visible, same)
+    with pytest.raises(EmptyRegionError, match="contradict"):
+        ValidRegion.from_bounds(B)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), K=st.integers(1, 16), R=st.integers(1, 8), H=st.integers(1, 4))
+def test_soft_z_buffer_is_finite_for_extreme_depths_and_scales(data, K: int, R: int, H: int) -> None:
+    """Depths 1e-3..1e4 and scales 1e-3..1e3: log-probabilities finite exactly where an object
+    covers the ray, their argmax is the hard segmentation, rays nobody covers are uniform."""
+    floats = lambda lo, hi, n: np.array(data.draw(st.lists(st.floats(lo, hi), min_size=n, max_size=n)))  # noqa: E731
+    depth = torch.from_numpy(floats(1e-3, 1e4, R * K).reshape(R, K))
+    covered = torch.from_numpy(np.array(data.draw(st.lists(st.booleans(), min_size=R * K, max_size=R * K))).reshape(R, K))
+    sbar = torch.from_numpy(floats(1e-3, 1e3, H * K).reshape(H, K))
+    logp = soft_segmentation_log(depth, covered, sbar)
+    assert not torch.isnan(logp).any()
+    any_cov = covered.any(1)
+    assert torch.isfinite(logp[:, any_cov][covered[any_cov][None].expand(H, -1, -1)]).all()
+    assert torch.isneginf(logp[:, any_cov][~covered[any_cov][None].expand(H, -1, -1)]).all()
+    assert torch.allclose(logp[:, ~any_cov], torch.full_like(logp[:, ~any_cov], -np.log(K)))
+    hard = implied_segmentation(depth, covered, sbar)
+    z = torch.log(sbar)[:, None, :] + torch.log(depth)[None]
+    z = torch.where(covered[None], z, torch.full_like(z, np.inf))
+    chosen = logp.argmax(-1)
+    # Equal up to ties of the scaled depths (exp() can round two close ones to the same value).
+    z_c, z_h = z.gather(-1, chosen[..., None])[..., 0], z.gather(-1, hard[..., None])[..., 0]
+    agree = (chosen == hard) | ((z_c - z_h).abs() <= 1e-12 * z_h.abs().clamp_min(1.0))
+    assert torch.all(agree[:, any_cov])
+
+
+def test_soft_z_buffer_beyond_float_range_and_identical_objects() -> None:
+    """Scaled depths past 1.8e308 are clamped (documented tie), never NaN; identical objects
+    at identical depth and scale split the ray evenly."""
+    depth = torch.tensor([[1e200, 1e200], [2.0, 2.0]], dtype=torch.float64)
+    covered = torch.ones(2, 2, dtype=torch.bool)
+    logp = soft_segmentation_log(depth, covered, torch.tensor([[1e200, 1e200]], dtype=torch.float64))
+    assert torch.isfinite(logp).all()
+    assert torch.allclose(logp, torch.full_like(logp, -np.log(2)))
+    near_zero = soft_segmentation_log(torch.tensor([[1e-300, 1.0]], dtype=torch.float64), covered[:1], torch.ones(1, 2, dtype=torch.float64))
+    assert torch.isfinite(near_zero).all() and near_zero[0, 0, 0] > near_zero[0, 0, 1]
+
+
+def test_transmittance_with_huge_infinite_and_nan_densities() -> None:
+    tau = torch.tensor([[0.0, 1e-30, 1e30, float("inf"), float("nan"), 5.0], [0.0] * 6, [1e4] * 6])
+    w, log_w = transmittance_weights(tau)
+    assert torch.isfinite(w).all() and torch.isfinite(log_w).all()
+    assert torch.all(w >= 0) and torch.all(w.sum(1) <= 1 + 1e-6)
+    assert w[0, 2] == pytest.approx(1.0) and w[1].sum() == 0 and w[2, 0] == pytest.approx(1.0)
+
+
+def test_render_with_huge_density_and_near_close_to_zero() -> None:
+    """A field saturated at an enormous density, rays starting 1e-9 in front of the camera, and
+    16 copies of the object composited: colour, depth, opacity and segmentation stay finite."""
+    from osn.fields import FieldConfig, make_field
+    from osn.volume import ObjectRays, render
+
+    field = make_field(FieldConfig(kind="dense", resolution=8, initial_resolution=8), torch.tensor([[-1.0, -1, 1], [1, 1, 3]]))
+    with torch.no_grad():
+        field.grid.data[:, 0] = 1e30
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.3, -0.2, 1.0], [5.0, 5.0, 1.0]])  # the last ray misses
+    R = len(dirs)
+    for K in (1, 16):
+        rays = [ObjectRays(field, torch.eye(4).expand(R, 4, 4), torch.ones(R, dtype=torch.bool), torch.tensor([1e-9, 1e4]))
+                for _ in range(K)]
+        with torch.no_grad():
+            out = render(rays, dirs, 16)
+        for t in (out.rgb, out.depth, out.acc, out.log_seg):
+            assert torch.isfinite(t).all()
+        assert float(out.acc[0]) == pytest.approx(1.0) and float(out.acc[2]) == 0.0
+        assert float(out.normalised_depth()[0]) == pytest.approx(1.0, abs=2 / 16)
+        assert torch.allclose(out.log_seg.logsumexp(1), torch.zeros(R), atol=1e-5)
+
+
+@settings(max_examples=80, deadline=None)
+@given(near=st.floats(1e-3, 1e4), depth_ratio=st.floats(1.0001, 1e4), slack=st.floats(1.0 + 1e-6, 1e6))
+def test_eq1_ranges_for_depth_ranges_1e_3_to_1e4(near: float, depth_ratio: float, slack: float) -> None:
+    """Eq. 1 with an object's depths spanning near..near*1e4 and a scene volume up to 1e3 deeper
+    on each side (scale ratios 1e-3..1e3): the range is finite and ordered, and normalise /
+    denormalise are inverse."""
+    far = near * depth_ratio
+    scene_near, scene_far = near / slack ** 0.5, far * slack ** 0.5
+    lo, hi = scale_range(scene_near, scene_far, near, far)
+    assert 0 < lo < hi and np.isfinite(hi)
+    ranges = np.array([[lo, hi]])
+    s = np.linspace(0, 1, 7)[:, None]
+    sbar = denormalise_scales(s, ranges)
+    assert sbar[0, 0] == pytest.approx(lo) and sbar[-1, 0] == pytest.approx(hi)
+    np.testing.assert_allclose(normalise_scales(sbar, ranges), s, atol=1e-9)
+
+
+def test_eq1_near_close_to_zero_and_degenerate_volumes() -> None:
+    lo, hi = scale_range(1e-12, 10.0, 1e-9, 5.0)  # near close to 0: finite
+    assert 0 < lo < hi and np.isfinite(lo)
+    with pytest.raises(InputsError, match="finite and positive"):
+        scale_range(0.0, 10.0, 1e-9, 5.0)
+    with pytest.raises(InputsError, match="empty scale range"):
+        scale_range(1.0, 2.0, 1.0, 4.0)  # the object is deeper than the scene volume
+    with pytest.raises(InputsError, match="scene volume factors"):
+        scene_volume([], 0.0, 1.5)
+
+
+def test_one_and_sixteen_objects_in_the_scale_network() -> None:
+    with pytest.raises(ValueError, match="at least one non-anchor object"):
+        ScaleNet(0)
+    one = full_sbar(torch.zeros(5, 0), torch.tensor([[1.0, 1.0]]), 0)
+    assert torch.equal(one, torch.ones(5, 1))
+    ranges = torch.tensor([[1.0, 1.0]] + [[1e-3, 1e3]] * 15, dtype=torch.float64)
+    net = ScaleNet(15)
+    sbar, s, score, _ = sample_valid(net, ranges, 0, torch.Generator().manual_seed(0), threshold=0.0)
+    assert sbar.shape == (16,) and sbar[0] == 1 and torch.isfinite(sbar).all() and 0 <= score <= 1
+
+
+def test_layered_compositing_and_masked_mse_limits() -> None:
+    """16 empty layers composite to the background exactly; an empty mask gives NaN on purpose
+    (no pixel to score: the caller's nanmean skips it), a one-pixel mask the exact error; a
+    perfect match is clamped at 120 dB, not inf."""
+    P, K = 5, 16
+    empty = Layer(torch.zeros(P, 3), torch.zeros(P), torch.full((P,), float("inf")))
+    layers = [[empty] for _ in range(K)]
+    img = composite_layers(layers, np.zeros((2, K), np.int64), np.array([0.2, 0.4, 0.6]))
+    assert torch.allclose(img, torch.tensor([0.2, 0.4, 0.6]).expand(2, P, 3))
+    gt = torch.rand(3, P, 3, dtype=torch.float64)
+    mask = torch.zeros(3, P, dtype=torch.bool)
+    mask[1, 2] = True
+    mask[2] = True
+    mse = masked_mse_matrix(gt[2:3].float(), gt, mask)
+    assert torch.isnan(mse[0, 0]) and torch.isfinite(mse[0, 1:]).all()
+    assert mse[0, 1] == pytest.approx(float(((gt[2, 2] - gt[1, 2]) ** 2).mean()), rel=1e-6)
+    assert psnr_from_mse(np.array([0.0]))[0] == pytest.approx(120.0)
+
+
+def test_nearly_empty_valid_set_falls_back_with_a_warning(trained: Path, caplog) -> None:
+    """A scale network that rejects everything: sampling still returns N configurations, says
+    how many fell back, and logs it (never an IndexError, never NaN)."""
+    from osn.run import load_run
+
+    run = load_run(trained)
+    with torch.no_grad():
+        run.net.mlp[-1].bias.fill_(-1e4)
+    with caplog.at_level(logging.WARNING):
+        s = sample_configurations(run, 10, max_draws=8192)
+    assert s.fell_back == 10 and len(s.sbar) == 10 and np.isfinite(s.sbar).all()
+    assert "using the best-scoring rest" in caplog.text
+
+
+# --------------------------------------------------------------------------------------------
+# 4. The table in docs/robustness.md
+# --------------------------------------------------------------------------------------------
+
+
+def test_doc_table_names_real_tests() -> None:
+    """Every test named in docs/robustness.md exists, and every test here is in the table."""
+    doc = DOC.read_text()
+    named = set(re.findall(r"`(test_\w+)(?:\[[\w-]+\])?`", doc))
+    defined = {}
+    for f in (REPO / "tests").glob("test_*.py"):
+        for name in re.findall(r"^def (test_\w+)", f.read_text(), flags=re.M):
+            defined[name] = f.name
+    assert not named - set(defined), f"named in the doc but not defined: {sorted(named - set(defined))}"
+    here = {n for n, f in defined.items() if f == Path(__file__).name}
+    assert not here - named, f"tests missing from docs/robustness.md: {sorted(here - named)}"
