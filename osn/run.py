@@ -131,6 +131,24 @@ class TrainedRun:
         }
 
 
+def read_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict:
+    """Read an ``osn train`` checkpoint; ``CheckpointError`` naming ``path`` when it is truncated,
+    foreign, of another version or lacks the fields and config."""
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as e:  # a truncated or foreign file
+        raise CheckpointError(f"{path}: not a readable osn checkpoint ({e})") from None
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{path}: not an osn checkpoint (a pickled {type(ckpt).__name__})")
+    version = ckpt.get("version", CHECKPOINT_VERSION)  # checkpoints without a version are version 1
+    if version != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {version!r}; this toolkit reads version {CHECKPOINT_VERSION}")
+    missing = [k for k in ("config", "resolutions", "fields") if k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path}: not an osn checkpoint (missing {', '.join(missing)})")
+    return ckpt
+
+
 def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> TrainedRun:
     """Load an ``osn train`` run directory (its last checkpoint) for inference."""
     run = Path(run_dir)
@@ -138,18 +156,7 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     if not ckpt_path.is_file():
         raise FileNotFoundError(f"{ckpt_path}: missing (not an osn train run directory, or training has not checkpointed yet)")
     inputs = load_inputs(run / "inputs")
-    try:
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    except Exception as e:  # a truncated or foreign file
-        raise CheckpointError(f"{ckpt_path}: not a readable osn checkpoint ({e})") from None
-    if not isinstance(ckpt, dict):
-        raise CheckpointError(f"{ckpt_path}: not an osn checkpoint (a pickled {type(ckpt).__name__})")
-    version = ckpt.get("version", CHECKPOINT_VERSION)  # checkpoints without a version are version 1
-    if version != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{ckpt_path}: checkpoint version {version!r}; this toolkit reads version {CHECKPOINT_VERSION}")
-    missing = [k for k in ("config", "resolutions", "fields") if k not in ckpt]
-    if missing:
-        raise CheckpointError(f"{ckpt_path}: not an osn checkpoint (missing {', '.join(missing)})")
+    ckpt = read_checkpoint(ckpt_path)
     if len(ckpt["fields"]) != inputs.num_objects:
         raise CheckpointError(f"{ckpt_path}: {len(ckpt['fields'])} fields but {run / 'inputs'} has {inputs.num_objects} objects")
     dev = torch.device(device)

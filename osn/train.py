@@ -603,7 +603,9 @@ def train(
     trainer = Trainer(inputs, cfg, device)
     metrics_path = out / "metrics.jsonl"
     if resume:
-        trainer.load_state_dict(torch.load(ckpt, map_location=device, weights_only=False))
+        from .run import read_checkpoint  # names the file when the checkpoint is damaged or foreign
+
+        trainer.load_state_dict(read_checkpoint(ckpt, device))
         _truncate_metrics(metrics_path, trainer.iteration)
     ds = D.read_json(out / "run.json").get("dataset")
     evaluator = Evaluator(trainer, ds)

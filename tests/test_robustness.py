@@ -276,6 +276,12 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
     (run / "checkpoint.pt").write_bytes(data[: len(data) // 2])
     jobs["checkpoint_truncated"] = (("osn", "sample", run), run / "checkpoint.pt", "not a readable osn checkpoint")
 
+    run = copy("resume_truncated_checkpoint")
+    data = (run / "checkpoint.pt").read_bytes()
+    (run / "checkpoint.pt").write_bytes(data[: len(data) // 3])
+    jobs["resume_truncated_checkpoint"] = (("osn", "train", tiny_dataset, "--out", run, "--resume"), run / "checkpoint.pt",
+                                           "not a readable osn checkpoint")
+
     run = copy("checkpoint_other_layout")
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     ck["config"]["field"]["kind"] = "tensorf"  # a TensoRF config with dense-grid weights
@@ -301,7 +307,7 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
     return {case: (r, named, phrase) for (case, (_, named, phrase)), r in zip(jobs.items(), results)}
 
 
-RUN_CASES = ["inputs_version", "inputs_missing_array", "checkpoint_version", "checkpoint_truncated",
+RUN_CASES = ["inputs_version", "inputs_missing_array", "checkpoint_version", "checkpoint_truncated", "resume_truncated_checkpoint",
              "checkpoint_other_layout", "evaluate_corrupt_test_view", "train_onto_existing_run", "export_onto_other_directory"]
 
 
