@@ -64,7 +64,7 @@ def test_addon_imports_the_export(demo, tmp_path):
         f"bpy.ops.extensions.package_install_files(filepath={str(zips[0])!r}, repo='user_default', enable_on_install=True)\n"
         f"bpy.ops.import_scene.osn(filepath={str(demo / 'export' / 'osn_export.json')!r})\n"
         "coll = bpy.context.scene.osn_collection\n"
-        "print('OBJECTS', len([o for o in coll.all_objects if o.type == 'MESH']), len([o for o in coll.all_objects if o.type == 'VOLUME']))\n"
+        "print('OBJECTS', len([o for o in coll.objects if o.type == 'MESH']), len([o for o in coll.objects if o.type == 'VOLUME']))\n"
     )
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
