@@ -10,7 +10,7 @@ PY     := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo bench addon clean-venv
+.PHONY: setup test demo addon clean-venv
 
 setup: $(STAMP)
 
@@ -33,9 +33,6 @@ test: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/osn demo
-
-bench: $(STAMP)
-	$(PY) -m benchmarks.run_all
 
 clean-venv:
 	rm -rf $(VENV)
