@@ -88,6 +88,7 @@ class TrainConfig:
     label_erode: int = 1
     label_stride: int = 2
     coverage_threshold: float = 0.5
+    uncertain_acc: float = 0.5
     valid_threshold: float = 0.95
     candidates: int = 256
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -398,12 +399,17 @@ class Trainer:
 
     @torch.no_grad()
     def render_alone_depths(self, flat: torch.Tensor, chunk: int = 8192) -> dict[str, torch.Tensor]:
-        """Every object's independent planar depth (own unit) and coverage on training pixels ``flat``
-        (the soft Z-buffer's per-object depths, rendered once per scale phase)."""
+        """Every object's independent planar depth (own unit), opacity ``acc`` and coverage on
+        training pixels ``flat`` (the soft Z-buffer's per-object depths, rendered once per scale
+        phase), and ``uncertain``: some object's ``acc`` is in ``(uncertain_acc, coverage_threshold]``."""
         st, cfg = self.st, self.cfg
         HW = st.H * st.W
         depth = torch.zeros(len(flat), st.K, device=self.device)
         covered = torch.zeros(len(flat), st.K, dtype=torch.bool, device=self.device)
+        # Some object is semi-transparent on the ray (acc between uncertain_acc and the coverage
+        # threshold): whether it "covers" is a coin flip of the threshold, so the ray is dropped.
+        uncertain = torch.zeros(len(flat), dtype=torch.bool, device=self.device)
+        acc = torch.zeros(len(flat), st.K, device=self.device)
         one = torch.ones(st.K, device=self.device)
         frames_all, pix_all = flat // HW, flat % HW
         for k in range(st.K):
@@ -412,8 +418,10 @@ class Trainer:
                 i = idx[a : a + chunk]
                 out = render(st.object_rays(self.fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.samples, None, None, cfg.skip_occluded)
                 depth[i, k] = out.normalised_depth()
+                acc[i, k] = out.acc
                 covered[i, k] = out.acc > cfg.coverage_threshold
-        return {"depth": depth, "covered": covered}
+                uncertain[i] |= (out.acc > cfg.uncertain_acc) & (out.acc <= cfg.coverage_threshold)
+        return {"depth": depth, "covered": covered, "uncertain": uncertain, "acc": acc}
 
     def _contested(self, flat: torch.Tensor, depth: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
         """Mask of rays that can inform the scale network: the labelled object covers the ray,
@@ -437,7 +445,7 @@ class Trainer:
         if self.cache_key != phase.start:
             flat = self._label_pixels()
             c = self.render_alone_depths(flat)
-            keep = self._contested(flat, c["depth"], c["covered"])
+            keep = self._contested(flat, c["depth"], c["covered"]) & ~c["uncertain"]
             self.cache = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
             self.cache_key = phase.start
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -129,3 +130,20 @@ def test_built_in_defaults_are_the_cpu_config() -> None:
     assert TrainConfig() == TrainConfig.from_yaml(root / "configs" / "osn-cpu.yaml")
     with pytest.raises(ValueError, match="unknown training config keys"):
         TrainConfig.from_dict({"stage1_iter": 3})
+
+
+def test_label_pool_drops_rays_with_a_semi_transparent_object(tiny_dataset: Path) -> None:
+    """``uncertain_acc`` below the coverage threshold removes every ray on which some object's
+    independent opacity is in between from the contested pool; equal to it, nothing is removed."""
+    cfg = _cfg(coverage_threshold=0.9, uncertain_acc=0.05)
+    tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
+    for _ in range(10):  # partly trained fields: opacities spread over (0, 1)
+        tr.step_stage1()
+    flat = tr._label_pixels()
+    c = tr.render_alone_depths(flat)
+    expected = ((c["acc"] > 0.05) & (c["acc"] <= 0.9)).any(1)
+    assert torch.equal(c["uncertain"], expected) and expected.any() and (~expected).any()
+    tr.ensure_cache(tr.schedule[1])
+    assert not torch.isin(tr.cache["flat"], flat[expected]).any()
+    tr.cfg = dataclasses.replace(cfg, uncertain_acc=0.9)
+    assert not tr.render_alone_depths(flat)["uncertain"].any()
