@@ -30,6 +30,9 @@ import numpy as np
 from benchgen import dataset as D
 from benchgen.cameras import invert_pose, pixel_rays
 
+#: Mask value of pixels that no loss may use (objects dropped by preprocessing).
+IGNORE_ID = 254
+
 INPUTS_FORMAT = "osn-inputs"
 INPUTS_VERSION = 1
 

@@ -24,6 +24,7 @@ import numpy as np
 from benchgen import dataset as D
 from benchgen.cameras import fit_pose_similarity, intrinsics_from_fov, invert_pose, rotation_angle_deg
 from .inputs import (
+    IGNORE_ID,
     InputsError,
     ObjectInputs,
     OracleConfig,
@@ -333,10 +334,6 @@ def preprocess_video(
         meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
     )
     return inputs, report
-
-
-#: Mask value for pixels of objects dropped by ``on_failure=skip``: excluded from every loss.
-IGNORE_ID = 254
 
 
 def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress=None) -> tuple[SceneInputs, PreprocessReport]:

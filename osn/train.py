@@ -47,7 +47,7 @@ from benchgen import dataset as D
 from benchgen.cameras import pixel_rays
 
 from .fields import Field, FieldConfig, make_field
-from .inputs import SceneInputs, load_inputs, oracle_inputs, save_inputs
+from .inputs import IGNORE_ID, SceneInputs, load_inputs, oracle_inputs, save_inputs
 from .scale_net import ScaleNet, full_sbar, sample_valid
 from .softz import implied_segmentation, sample_accuracy, validity_labels
 from .volume import ObjectRays, RenderOutput, render
@@ -175,6 +175,9 @@ class SceneTensors:
         self.sp_depth, self.sp_obj = cat(sp_depth, torch.float32), cat(sp_obj, torch.long)
         # Per object: flat (frame * HW + pixel) indices of its masked pixels and of its sparse depths.
         flat_labels = self.labels.reshape(-1)
+        # Pixels of objects that preprocessing dropped carry no supervision at all (None: every pixel).
+        ignored = torch.from_numpy(inputs.masks.reshape(-1) == IGNORE_ID).to(device)
+        self.usable = torch.nonzero(~ignored)[:, 0] if bool(ignored.any()) else None
         self.obj_pixels = [torch.nonzero(flat_labels == k)[:, 0] for k in range(self.K)]
         self.obj_sparse = [torch.nonzero(self.sp_obj == k)[:, 0] for k in range(self.K)]
         self.ranges = torch.from_numpy(inputs.scale_ranges()).to(device, torch.float64)
@@ -353,7 +356,7 @@ class Trainer:
     def step_fields(self) -> dict[str, float]:
         st, cfg = self.st, self.cfg
         sbar, score = self.sample_configuration()
-        flat = self._randint(st.T * st.H * st.W, cfg.rays)
+        flat = self._randint(st.T * st.H * st.W, cfg.rays) if st.usable is None else st.usable[self._randint(len(st.usable), cfg.rays)]
         frames, p = flat // (st.H * st.W), flat % (st.H * st.W)
         n_rgb = len(p)
         if st.has_depth and cfg.w_depth > 0:
@@ -656,7 +659,8 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     def _cmd(args: argparse.Namespace) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         cfg = TrainConfig.from_yaml(args.config) if args.config else None
-        run = train(args.dataset, args.out, cfg, resume=args.resume, max_iterations=args.max_iterations)
+        inputs = load_inputs(args.inputs) if args.inputs and not args.resume else None
+        run = train(args.dataset, args.out, cfg, resume=args.resume, inputs=inputs, max_iterations=args.max_iterations)
         last = Path(run) / "metrics.jsonl"
         if last.exists():
             rec = json.loads(last.read_text().splitlines()[-1])
@@ -668,5 +672,7 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", help="benchgen dataset directory (oracle per-object inputs are derived from it)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, metrics.jsonl, config, inputs)")
     p.add_argument("--config", help="YAML training config; omitted keys take the CPU defaults (configs/osn-cpu.yaml)")
+    p.add_argument("--inputs", help="per-object inputs directory from `osn preprocess` (or `osn oracle`); "
+                   "default: oracle inputs derived from the dataset's ground truth")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--max-iterations", type=int, default=None, help="stop after this global iteration (resumable)")

@@ -76,3 +76,17 @@ def test_save_load_round_trip(oracle, tmp_path):
         assert np.array_equal(a.cam_to_obj, b.cam_to_obj) and a.near == b.near
         assert all(np.array_equal(x, y) for x, y in zip(a.sparse_depth, b.sparse_depth))
         assert all(np.array_equal(x, y) for x, y in zip(a.sparse_pix, b.sparse_pix))
+
+
+def test_ignored_pixels_are_never_drawn_for_training(oracle):
+    import torch
+
+    from osn.train import SceneTensors
+
+    root, scene, inp = oracle
+    inp.masks[inp.masks == 2] = I.IGNORE_ID  # as preprocessing does for a dropped object
+    st = SceneTensors(inp, torch.device("cpu"))
+    flat_masks = torch.from_numpy(inp.masks.reshape(-1))
+    assert st.usable is not None and not torch.any(flat_masks[st.usable] == I.IGNORE_ID)
+    assert len(st.usable) == int((flat_masks != I.IGNORE_ID).sum())
+    assert len(st.obj_pixels[2]) == 0  # and no object claims them
