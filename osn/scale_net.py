@@ -68,12 +68,13 @@ def sample_valid(
     generator: torch.Generator,
     candidates: int = 256,
     threshold: float = 0.95,
+    warn: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, float, bool]:
     """Draw one scale vector the network deems valid (score > ``threshold``).
 
     Uniform candidates in [0, 1)^(K-1); one of those above the threshold is picked uniformly.
-    When none passes, the best-scoring candidate is used and a warning is logged: this never
-    raises. Returns ``(sbar (K,), s_free (K-1,), score, fell_back)``.
+    When none passes, the best-scoring candidate is used and a warning is logged (unless
+    ``warn`` is False because the caller counts fallbacks): this never raises. Returns ``(sbar (K,), s_free (K-1,), score, fell_back)``.
     """
     dev = ranges.device
     s = torch.rand(candidates, net.num_free, generator=generator, device=generator.device).to(dev)
@@ -86,6 +87,7 @@ def sample_valid(
     else:
         i = torch.argmax(p)
         fell_back = True
-        log.warning("no sampled scale vector scored above %.3g (best %.3g): using the best one", threshold, float(p[i]))
+        if warn:  # callers that count fallbacks themselves report them once, not per draw
+            log.warning("no sampled scale vector scored above %.3g (best %.3g): using the best one", threshold, float(p[i]))
     s_i = s[i : i + 1]
     return full_sbar(s_i, ranges, anchor)[0], s_i[0], float(p[i]), fell_back

@@ -349,7 +349,12 @@ class Trainer:
         """One valid scale vector ``(K,)`` for a composite step (anchor = 1; single object = [1])."""
         if self.net is None:
             return torch.ones(1, dtype=torch.float64, device=self.device), 1.0
-        sbar, _, p, fell_back = sample_valid(self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold)
+        sbar, _, p, fell_back = sample_valid(
+            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False
+        )
+        if fell_back and self.fallbacks == 0:
+            log.warning("no candidate scored above %.2f (best %.3f): field steps use the best one; "
+                        "the count is in metrics.jsonl ('fallbacks')", self.cfg.valid_threshold, p)
         self.fallbacks += int(fell_back)
         return sbar, p
 
