@@ -87,7 +87,8 @@ class ExportObject:
         frames: ``(F,)`` time indices where the object has a pose.
         object_to_scene: ``(F, 4, 4)`` object-to-scene pose at ``sbar = 1`` (see module docs of
             ``blender_addon/osn_core.py``: a configuration scales it about the camera centre).
-        mesh_level: density of the marching-cubes surface; None = ``ln 2 / voxel size``.
+        mesh_level: density of the marching-cubes surface; None = ``ln 2 / voxel size`` capped
+            at half the peak density.
     """
 
     id: int
@@ -109,8 +110,14 @@ class ExportObject:
 
     def surface_level(self) -> float:
         """The mesh's iso-density. Default: where one voxel of material is half opaque
-        (``1 - exp(-sigma * voxel) = 0.5``), a resolution-aware stand-in for "the surface"."""
-        return float(self.mesh_level) if self.mesh_level is not None else math.log(2.0) / float(self.voxel_size().mean())
+        (``1 - exp(-sigma * voxel) = 0.5``), a resolution-aware stand-in for "the surface";
+        capped at half the peak density, because a coarse field (a CPU grid trained with few
+        samples per ray) spreads its opacity over several voxels and never gets that dense."""
+        if self.mesh_level is not None:
+            return float(self.mesh_level)
+        per_voxel = math.log(2.0) / float(self.voxel_size().mean())
+        peak = float(np.max(self.density)) if np.size(self.density) else 0.0
+        return min(per_voxel, 0.5 * peak) if peak > 0 else per_voxel
 
 
 @dataclass
@@ -538,7 +545,10 @@ def scale_network_from_torch(net: Any, threshold: float) -> ScaleNetwork:
 
 
 def _test_rig(dataset: str | None, T: int) -> np.ndarray | None:
-    """``(V, T, 4, 4)`` OpenCV test cameras of the run's dataset (world frame), if it is reachable."""
+    """``(V, T, 4, 4)`` OpenCV test cameras of the run's dataset (world frame), if it is reachable.
+
+    Every viewpoint with a test frame is kept; timestamps it is not listed at hold its nearest listed camera.
+    """
     if not dataset or not (Path(dataset) / "scene.json").is_file():
         return None
     scene = D.load_scene(dataset)
@@ -548,9 +558,14 @@ def _test_rig(dataset: str | None, T: int) -> np.ndarray | None:
     for f in scene.frames:
         if f.view in views:
             rig[views.index(f.view), f.time_index] = f.camera_to_world
-    # A viewpoint is usable only if it has a camera at every timestamp.
-    keep = [v for v in range(len(views)) if np.all(np.isfinite(rig[v]))]
-    return rig[keep] if keep else None
+    # Datasets may list a viewpoint at only some timestamps (rig.test_views); a viewpoint's camera
+    # is held from its nearest listed time (benchgen's viewpoints do not move).
+    for v in range(len(views)):
+        known = np.nonzero(np.all(np.isfinite(rig[v]), axis=(1, 2)))[0]
+        for t in range(T):
+            if not np.all(np.isfinite(rig[v, t])):
+                rig[v, t] = rig[v, known[np.argmin(np.abs(known - t))]]
+    return rig if len(views) else None
 
 
 def export_run(
