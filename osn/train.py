@@ -48,6 +48,7 @@ from benchgen.cameras import pixel_rays
 
 from .fields import Field, FieldConfig, make_field
 from .inputs import IGNORE_ID, SceneInputs, load_inputs, oracle_inputs, save_inputs
+from .run import CHECKPOINT_VERSION, read_checkpoint
 from .scale_net import ScaleNet, full_sbar, sample_valid
 from .softz import implied_segmentation, sample_accuracy, validity_labels
 from .volume import ObjectRays, RenderOutput, render
@@ -271,6 +272,7 @@ class Trainer:
 
     def state_dict(self) -> dict[str, Any]:
         return {
+            "version": CHECKPOINT_VERSION,
             "iteration": self.iteration,
             "field_iter": self.field_iter,
             "elapsed": self.elapsed,
@@ -579,7 +581,13 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
     """Drop metric lines written after the checkpoint being resumed (they will be rewritten)."""
     if not path.exists():
         return
-    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln)["iteration"] <= iteration]
+    lines = []
+    for ln in path.read_text().splitlines():
+        try:
+            if json.loads(ln)["iteration"] <= iteration:
+                lines.append(ln)
+        except (json.JSONDecodeError, KeyError, TypeError):
+            continue  # a line cut by a kill mid-write; it is rewritten from the checkpoint
     D.atomic_write_bytes(path, ("\n".join(lines) + "\n" if lines else "").encode())
 
 
@@ -619,8 +627,6 @@ def train(
     trainer = Trainer(inputs, cfg, device)
     metrics_path = out / "metrics.jsonl"
     if resume:
-        from .run import read_checkpoint  # names the file when the checkpoint is damaged or foreign
-
         trainer.load_state_dict(read_checkpoint(ckpt, device))
         _truncate_metrics(metrics_path, trainer.iteration)
     ds = D.read_json(out / "run.json").get("dataset")
