@@ -20,7 +20,6 @@ Every write is atomic: a temporary file in the same directory, then ``os.replace
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 import math
 import os

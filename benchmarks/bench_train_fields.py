@@ -19,7 +19,6 @@ import time
 import torch
 import torch.nn.functional as F
 
-from osn.fields import FieldConfig
 from osn.inputs import oracle_inputs
 from osn.train import TrainConfig, Trainer, pick_device
 from osn.volume import render

@@ -162,7 +162,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     se = ev["scale_error"]
     print(f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f}); "
           f"relative scale error of matches {sum(se) / max(len(se), 1):.3f}")
-    print(f"stage times: " + ", ".join(f"{k} {r['seconds']:.0f} s" for k, r in records.items()))
+    print("stage times: " + ", ".join(f"{k} {r['seconds']:.0f} s" for k, r in records.items()))
     print(f"total this invocation: {time.perf_counter() - t0:.0f} s")
     print(f"report:  {work / 'report' / 'report.md'}")
     print(f"export:  {work / 'export'}")

@@ -51,7 +51,7 @@ from .inputs import IGNORE_ID, SceneInputs, load_inputs, oracle_inputs, save_inp
 from .run import CHECKPOINT_VERSION, read_checkpoint
 from .scale_net import ScaleNet, full_sbar, sample_valid
 from .softz import implied_segmentation, sample_accuracy, validity_labels
-from .volume import ObjectRays, RenderOutput, render
+from .volume import ObjectRays, render
 
 log = logging.getLogger(__name__)
 

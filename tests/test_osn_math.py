@@ -11,7 +11,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from osn.fields import DenseGridField, FieldConfig, TensoRFVM, make_field, trilinear
+from osn.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.softz import implied_segmentation, soft_segmentation_log, softz_labels, validity_labels
 from osn.volume import ObjectRays, ray_box, render, transmittance_weights
