@@ -149,7 +149,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .report import results_table
+    from .report import summary_lines
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     t0 = time.perf_counter()
@@ -157,11 +157,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     work = Path(args.work)
     ev = records["evaluate"]["summary"]
     print()
-    print(results_table(ev["table"]))
-    v = ev["valid_set"]
-    se = ev["scale_error"]
-    print(f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f}); "
-          f"relative scale error of matches {sum(se) / max(len(se), 1):.3f}")
+    print("\n".join(summary_lines(ev["table"], ev["valid_set"], ev["scale_error"])))
     print("stage times: " + ", ".join(f"{k} {r['seconds']:.0f} s" for k, r in records.items()))
     print(f"total this invocation: {time.perf_counter() - t0:.0f} s")
     print(f"report:  {work / 'report' / 'report.md'}")

@@ -28,7 +28,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import EvalConfig, Samples, evaluate
-    from .report import results_table, write_report
+    from .report import summary_lines, write_report
     from .run import load_run
 
     run = load_run(args.run)
@@ -42,9 +42,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     res.timings["total_s"] = time.perf_counter() - t0
     out = Path(args.out) if args.out else Path(args.run) / "report"
     report = write_report(res, out, Path(args.run), "osn " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
-    print(results_table(res.table))
-    v = res.valid_set
-    print(f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f})")
+    print("\n".join(summary_lines(res.table, res.valid_set, res.scale_error)))
     print(f"report: {report}")
     return 0
 

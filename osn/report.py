@@ -33,6 +33,15 @@ def results_table(table: dict[str, dict[str, list[float]]]) -> str:
     return "\n".join(lines)
 
 
+def summary_lines(table: dict[str, dict[str, list[float]]], valid_set: dict[str, float], scale_error: list[float]) -> list[str]:
+    """The console summary of an evaluation: the results table, valid-set accuracy, scale error."""
+    v = valid_set
+    line = f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f})"
+    if scale_error:
+        line += f"; relative scale error of matches {float(np.mean(scale_error)):.3f}"
+    return [results_table(table), line]
+
+
 def _save_fig(fig, path: Path) -> None:
     import io
 
