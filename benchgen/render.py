@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import multiprocessing.util
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -102,8 +104,11 @@ class Renderer:
         self.built = built
         self.render_seconds = 0.0
         self.render_calls = 0
-        self._tmp = tempfile.TemporaryDirectory(prefix="benchgen-render-")
-        self._exr = str(Path(self._tmp.name) / "frame.exr")
+        tmp = tempfile.mkdtemp(prefix="benchgen-render-")
+        # multiprocessing's Finalize (unlike TemporaryDirectory's weakref finaliser) also runs
+        # when a Pool worker exits through os._exit, so spawned renderers do not leak this dir.
+        multiprocessing.util.Finalize(self, shutil.rmtree, args=(tmp,), kwargs={"ignore_errors": True}, exitpriority=0)
+        self._exr = str(Path(tmp) / "frame.exr")
         with _quiet():
             bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
