@@ -6,11 +6,12 @@
 ``CHECKPOINT`` a checkpoint of it whose fields are to be labelled (for example a copy of
 ``checkpoint.pt`` taken after stage 1). ``key=value`` override the run's training config (label
 pool options such as ``coverage_threshold``, ``uncertain_acc``, ``label_stride``,
-``label_erode``, ``label_tolerance``). Prints the pool size, the segmentation error of the exact
-configurations against the best of random ones (the noise floor), the IoU / precision / recall
-of the *labelled* set (error within ``label_tolerance`` of the lowest one on the whole pool) on
-the evaluator's Monte-Carlo samples, then trains a fresh scale network for ``--steps`` scale
-steps on those fields and prints its IoU every 50 steps.
+``label_erode``, ``label_trim``). Prints the pool size, per object pair the bound its rays set
+(trimmed by ``label_trim``, in dataset scales) next to the exact one, the violations of the
+exact configurations against the lowest (the noise floor), the IoU / precision / recall of the
+*labelled* set (``softz.trimmed_labels`` on the whole pool) on the evaluator's Monte-Carlo
+samples, then trains a fresh scale network for ``--steps`` scale steps on those fields and
+prints its IoU every 50 steps.
 """
 
 from __future__ import annotations
@@ -20,21 +21,14 @@ import json
 import logging
 from pathlib import Path
 
+import numpy as np
 import torch
 import yaml
 
 from osn.inputs import load_inputs
 from osn.scale_net import full_sbar
-from osn.softz import implied_segmentation, sample_accuracy
+from osn.softz import trimmed_labels
 from osn.train import Evaluator, Phase, TrainConfig, Trainer
-
-
-def pool_error(tr: Trainer, s: torch.Tensor, chunk: int = 2000) -> torch.Tensor:
-    """Error rate ``(N,)`` of normalised scale samples ``s (N, K-1)`` on the whole cached pool."""
-    c, st = tr.cache, tr.st
-    gt = st.labels.reshape(-1)[c["flat"]]
-    errs = [1 - sample_accuracy(implied_segmentation(c["depth"], c["covered"], full_sbar(s[a : a + chunk], st.ranges, st.anchor)), gt) for a in range(0, len(s), chunk)]
-    return torch.cat(errs)
 
 
 def main() -> None:
@@ -62,12 +56,20 @@ def main() -> None:
     phase = Phase("scale", 10**9, 10**9 + a.steps, 1)
     tr.ensure_cache(phase)
     exact = torch.from_numpy(ev.exact)
-    err = pool_error(tr, ev.s_mc.float())
-    lab = err <= err.min() + cfg.label_tolerance + 1e-12
+    st, cons = tr.st, tr.cache["constraints"]
+    units = np.array([o.unit_to_world for o in st.inputs.objects])
+    ids = [o.id for o in st.inputs.objects]
+    for (i, j), thr in zip(cons.pairs, cons.thresholds):
+        b = np.exp(thr.numpy()) * units[j] / units[i]  # bound on actual_i / actual_j
+        exact_b = ev.region.ratio_bounds[ids[i]][ids[j]]
+        print(f"pair {ids[i]} in front of {ids[j]}: {len(b)} rays, bound min {b[0]:.3f} trimmed {b[int(cfg.label_trim * len(b))]:.3f} exact {exact_b}")
+    pv = cons.pair_violations(full_sbar(ev.s_mc.float(), st.ranges, st.anchor))
+    err = pv.sum(1)
+    lab = trimmed_labels(pv, cons.sizes(), cfg.label_trim).bool()
     inter = float((lab & exact).sum())
     print(
-        f"pool {len(tr.cache['flat'])} rays; exact configurations' error {float(err[exact].min()):.4f}-{float(err[exact].max()):.4f}, "
-        f"lowest {float(err.min()):.4f}; labelled set {float(lab.double().mean()):.4f} of the box (exact {float(exact.double().mean()):.4f}): "
+        f"pool {cons.rays} rays, {cons.count} constraints; exact configurations violate {float(err[exact].min()):.0f}-{float(err[exact].max()):.0f}, "
+        f"lowest {float(err.min()):.0f}; labelled set {float(lab.double().mean()):.4f} of the box (exact {float(exact.double().mean()):.4f}): "
         f"IoU {inter / max(float((lab | exact).sum()), 1):.3f} precision {inter / max(float(lab.sum()), 1):.3f} recall {inter / max(float(exact.sum()), 1):.3f}",
         flush=True,
     )

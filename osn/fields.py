@@ -78,6 +78,15 @@ class Field(nn.Module):
         """Optimiser parameter groups: grids and networks learn at different rates (as TensoRF)."""
         raise NotImplementedError
 
+    def density_tv(self) -> torch.Tensor:
+        """Total variation (mean squared neighbour difference) of the raw density parameters.
+
+        A smoothness prior for space no training ray constrains: with Adam its gradient moves
+        unobserved voxels towards their neighbours, so surfaces hidden in every frame (the floor
+        under an object) are continued instead of left empty.
+        """
+        raise NotImplementedError
+
 
 def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Tensor:
     """Trilinear lookup of a channels-last grid ``(R^3, C)`` (x fastest, as ``grid_sample``'s
@@ -141,6 +150,11 @@ class DenseGridField(Field):
 
     def param_groups(self, lr_grid: float, lr_net: float) -> list[dict]:
         return [{"params": [self.grid], "lr": lr_grid}]
+
+    def density_tv(self) -> torch.Tensor:
+        r = self.resolution
+        g = self.grid[:, 0].view(r, r, r)  # (z, y, x)
+        return sum(torch.diff(g, dim=d).square().mean() for d in range(3))
 
 
 def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
@@ -235,6 +249,10 @@ class TensoRFVM(Field):
         grids = [self.density_planes, self.density_lines, self.app_planes, self.app_lines]
         return [{"params": grids, "lr": lr_grid}, {"params": list(self.basis.parameters()) + list(self.mlp.parameters()), "lr": lr_net}]
 
+    def density_tv(self) -> torch.Tensor:
+        p, ln = self.density_planes, self.density_lines  # TensoRF's TV on the VM factors
+        return torch.diff(p, dim=2).square().mean() + torch.diff(p, dim=3).square().mean() + torch.diff(ln, dim=2).square().mean()
+
 
 @dataclass
 class FieldConfig:
@@ -247,6 +265,7 @@ class FieldConfig:
         upsample_steps: number of evenly log-spaced resolution increases during training.
         density_components, appearance_components, app_dim, hidden: TensoRF sizes (paper: 16, 48).
         lr_grid, lr_net: Adam learning rates of grids and networks.
+        tv_density: weight of the density total-variation prior (:meth:`Field.density_tv`).
     """
 
     kind: str = "dense"
@@ -259,6 +278,7 @@ class FieldConfig:
     hidden: int = 64
     lr_grid: float = 0.2
     lr_net: float = 1e-3
+    tv_density: float = 0.0
 
     def resolutions(self) -> list[int]:
         """The resolution after each upsampling step, from ``initial_resolution`` to ``resolution``."""

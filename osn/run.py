@@ -25,7 +25,7 @@ from .volume import ObjectRays, RenderOutput, render
 
 #: Version of ``checkpoint.pt`` this module reads. ``osn train`` checkpoints carry no version
 #: key yet and are read as version 1; a different ``version`` is refused with a clear message.
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 
 
 class CheckpointError(ValueError):

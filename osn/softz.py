@@ -13,9 +13,19 @@ Labels are per scale *sample*, as in the public code: a sample is valid when the
 implies matches the masks on (nearly) all contested rays of the batch (rays where at least two
 objects are present, the only ones a scale can get wrong). Per-ray labels would instead teach
 the network the fraction of rays a sample gets right.
+
+:class:`OrderConstraints` is the same test in closed form for a large ray pool: a ray labelled
+``i`` that object ``j`` also covers is explained by ``sbar`` iff ``log sbar_i - log sbar_j <
+log d_j - log d_i``, so per object pair the rays are one sorted array of thresholds and the
+number of rays a scale vector gets wrong is a ``searchsorted``. Scoring ``H`` samples against
+every contested training pixel then costs ``O(pairs * H log R)`` instead of ``O(H R K)``, so
+labels need no random ray batch (whose luck decides whether the few rays that bound a scale are
+in it).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 
@@ -100,3 +110,89 @@ def softz_labels(
     acc = sample_accuracy(seg, gt[contested])
     labels, fell_back = validity_labels(acc, tolerance, topk, noise_floor)
     return labels, acc, fell_back
+
+
+@dataclass
+class OrderConstraints:
+    """Depth-order constraints of labelled rays, grouped by ordered object pair.
+
+    Attributes:
+        pairs: ``(i, j)`` = (labelled object, another object covering the ray).
+        thresholds: per pair the sorted ``log d_j - log d_i`` (float64) of its rays.
+        rays: number of rays the constraints come from.
+    """
+
+    pairs: list[tuple[int, int]]
+    thresholds: list[torch.Tensor]
+    rays: int
+
+    @property
+    def count(self) -> int:
+        """Number of (ray, other object) constraints."""
+        return int(sum(len(t) for t in self.thresholds))
+
+    def violations(self, sbar: torch.Tensor) -> torch.Tensor:
+        """Violated constraints ``(H,)`` of scale vectors ``sbar (H, K)``.
+
+        On a ray covered by exactly two objects a violation is the implied segmentation
+        (:func:`implied_segmentation`) disagreeing with the label; a ray with more covering
+        objects counts once per object it puts in front of the labelled one.
+        """
+        return self.pair_violations(sbar).sum(1)
+
+    def pair_violations(self, sbar: torch.Tensor) -> torch.Tensor:
+        """Violated constraints per pair ``(H, len(pairs))`` of scale vectors ``sbar (H, K)``."""
+        log_s = torch.log(sbar.double())
+        out = torch.zeros(sbar.shape[0], len(self.pairs), dtype=torch.float64, device=sbar.device)
+        for p, ((i, j), thr) in enumerate(zip(self.pairs, self.thresholds)):
+            delta = (log_s[:, i] - log_s[:, j]).contiguous()
+            out[:, p] = torch.searchsorted(thr, delta, right=True).double()
+        return out
+
+    def sizes(self) -> torch.Tensor:
+        """Constraints per pair ``(len(pairs),)``."""
+        return torch.tensor([len(t) for t in self.thresholds], dtype=torch.float64)
+
+
+def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tensor) -> OrderConstraints:
+    """Constraints of rays with label ``gt (R,)``, depths ``(R, K)`` and coverage ``(R, K)``.
+
+    Rays whose labelled object does not cover them, or that no other object covers, constrain
+    nothing and are left out.
+    """
+    K = covered.shape[1]
+    logd = torch.log(depth.double().clamp_min(1e-300))
+    valid = (gt >= 0) & (gt < K)
+    g = gt.clamp(0, K - 1)
+    own = covered.gather(1, g[:, None])[:, 0] & valid
+    pairs, thresholds = [], []
+    for i in range(K):
+        rows = own & (g == i)
+        if not bool(rows.any()):
+            continue
+        for j in range(K):
+            if j == i:
+                continue
+            m = rows & covered[:, j]
+            if bool(m.any()):
+                pairs.append((i, j))
+                thresholds.append(torch.sort(logd[m, j] - logd[m, i]).values.contiguous())
+    return OrderConstraints(pairs, thresholds, int((own & (covered.sum(1) >= 2)).sum()))
+
+
+def trimmed_labels(pair_violations: torch.Tensor, sizes: torch.Tensor, trim: float) -> torch.Tensor:
+    """0/1 labels ``(H,)`` from per-pair violation counts ``(H, P)`` (:meth:`OrderConstraints.pair_violations`).
+
+    A sample is valid when, on every object pair, it violates at most what the best sample (fewest
+    violations in all) violates there plus ``trim`` of the pair's rays. The best sample's
+    violations are the noise floor: rays no scale vector explains together with the rest
+    (floaters, a silhouette that bleeds). ``trim`` drops the few rays of a pair whose learned
+    depths are off; the bound a pair sets is decided by its handful of tightest rays, so a
+    single global tolerance would let one pair's noise decide for all. The best sample is
+    always valid, so the network always keeps a positive class.
+    """
+    if pair_violations.shape[1] == 0:
+        return torch.ones(pair_violations.shape[0], dtype=torch.float32, device=pair_violations.device)
+    floor = pair_violations[pair_violations.sum(1).argmin()]
+    allow = floor + torch.floor(trim * sizes.to(pair_violations))
+    return (pair_violations <= allow[None]).all(1).to(torch.float32)

@@ -50,10 +50,13 @@ from .fields import Field, FieldConfig, make_field
 from .inputs import IGNORE_ID, SceneInputs, load_inputs, oracle_inputs, save_inputs
 from .run import CHECKPOINT_VERSION, read_checkpoint
 from .scale_net import ScaleNet, full_sbar, sample_valid
-from .softz import implied_segmentation, sample_accuracy, validity_labels
+from .softz import OrderConstraints, order_constraints, trimmed_labels
 from .volume import ObjectRays, render
 
 log = logging.getLogger(__name__)
+
+#: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
+REPLAY_SIZE = 4096
 
 
 @dataclass
@@ -79,19 +82,25 @@ class TrainConfig:
     w_rgb: float = 1.0
     w_depth: float = 1.0
     w_seg: float = 0.01
+    w_opacity: float = 1.0
+    w_free: float = 1.0
+    free_space: str = "anchor"
+    free_rays: int = 128
+    free_band: int = 4
     scale_width: int = 64
     scale_layers: int = 4
     scale_lr: float = 5e-3
     scale_samples: int = 1024
-    label_rays: int = 4096
-    label_tolerance: float = 2e-3
-    label_topk: int = 4
-    label_erode: int = 1
-    label_stride: int = 2
-    coverage_threshold: float = 0.5
-    uncertain_acc: float = 0.5
+    label_rays: int = 0
+    label_replay: float = 0.5
+    label_samples: int = 24
+    label_trim: float = 0.01
+    label_erode: int = 0
+    label_stride: int = 1
+    coverage_threshold: float = 0.9
+    uncertain_acc: float = 0.05
     valid_threshold: float = 0.95
-    candidates: int = 256
+    candidates: int = 4096
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     eval_every: int = 200
     eval_pixels: int = 4096
@@ -180,8 +189,30 @@ class SceneTensors:
         ignored = torch.from_numpy(inputs.masks.reshape(-1) == IGNORE_ID).to(device)
         self.usable = torch.nonzero(~ignored)[:, 0] if bool(ignored.any()) else None
         self.obj_pixels = [torch.nonzero(flat_labels == k)[:, 0] for k in range(self.K)]
+        self.ignored = ignored
         self.obj_sparse = [torch.nonzero(self.sp_obj == k)[:, 0] for k in range(self.K)]
         self.ranges = torch.from_numpy(inputs.scale_ranges()).to(device, torch.float64)
+
+    def free_pixels(self, mode: str, band: int) -> list[torch.Tensor]:
+        """Per object the flat indices of pixels its field must leave empty, within ``band``
+        pixels of its mask in frames where it is present.
+
+        ``mode`` "anchor": pixels showing the anchor or nothing (objects are never behind the
+        anchor, e.g. a room that contains them); "all": every pixel of another object too
+        (the paper's masked images; also carves what other objects hide); "none": no pixels.
+        """
+        T, H, W = self.T, self.H, self.W
+        lab = self.labels.reshape(T, H, W)
+        out = []
+        for k in range(self.K):
+            if mode == "none":
+                out.append(torch.zeros(0, dtype=torch.long, device=self.device))
+                continue
+            near = F.max_pool2d((lab == k).float()[:, None], 2 * band + 1, stride=1, padding=band)[:, 0] > 0
+            free = (lab != k) if mode == "all" else (lab == -1) | ((lab == self.anchor) & (k != self.anchor))
+            keep = near & free & self.present[k][:, None, None] & ~self.ignored.reshape(T, H, W)
+            out.append(torch.nonzero(keep.reshape(-1))[:, 0])
+        return out
 
     @property
     def has_depth(self) -> bool:
@@ -260,8 +291,12 @@ class Trainer:
         self.cache: dict[str, torch.Tensor] | None = None
         self.cache_key: int | None = None
         self.noise_floor = 0.0
+        self.positives = torch.zeros(0, max(K - 1, 1))
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
         self.bg = torch.tensor(cfg.background, device=device)
+        if cfg.free_space not in ("none", "anchor", "all"):
+            raise ValueError(f"free_space must be none, anchor or all, got {cfg.free_space!r}")
+        self.free = self.st.free_pixels(cfg.free_space, cfg.free_band)
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
@@ -278,6 +313,7 @@ class Trainer:
             "elapsed": self.elapsed,
             "fallbacks": self.fallbacks,
             "noise_floor": self.noise_floor,
+            "positives": self.positives,
             "loss_acc": self.loss_acc,
             "resolutions": [f.resolution for f in self.fields],
             "fields": [f.state_dict() for f in self.fields],
@@ -292,6 +328,7 @@ class Trainer:
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.iteration, self.field_iter, self.elapsed = s["iteration"], s["field_iter"], s["elapsed"]
         self.fallbacks, self.noise_floor = s["fallbacks"], s["noise_floor"]
+        self.positives = s["positives"]
         self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
         for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
             f.set_resolution(r)
@@ -315,11 +352,27 @@ class Trainer:
     def _depth_loss(self, out_depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         return F.mse_loss(out_depth, target) if target.numel() else out_depth.sum() * 0.0
 
+    def _free_loss(self, k: int) -> torch.Tensor | float:
+        """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see
+        :meth:`SceneTensors.free_pixels`): keeps its field from bleeding past its silhouette,
+        which would otherwise read as "k is behind the anchor" to the scale labels."""
+        st, cfg, free = self.st, self.cfg, self.free[k]
+        if cfg.w_free <= 0 or not len(free):
+            return 0.0
+        fp = free[self._randint(len(free), cfg.free_rays)]
+        one = torch.ones(st.K, device=self.device)
+        out = render(st.object_rays(self.fields, fp // (st.H * st.W), one, [k]), st.dirs[fp % (st.H * st.W)], self.cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        return out.acc.square().mean()
+
+    def _tv(self, k: int) -> torch.Tensor | float:
+        w = self.cfg.field.tv_density
+        return w * self.fields[k].density_tv() if w > 0 else 0.0
+
     # ---- stage 1 -------------------------------------------------------------------------
 
     def step_stage1(self) -> dict[str, float]:
         st, cfg = self.st, self.cfg
-        losses = {"rgb": 0.0, "depth": 0.0}
+        losses = {"rgb": 0.0, "depth": 0.0, "opacity": 0.0, "free": 0.0}
         total = 0.0
         one = torch.ones(1, device=self.device)
         for k in range(st.K):
@@ -337,9 +390,17 @@ class Trainer:
             out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
             l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
             l_depth = self._depth_loss(out.depth[n_rgb:], d_gt)
-            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth
+            # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
+            # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
+            # ray shortens) then pushes its surfaces behind the true ones (the room by ~6-10%).
+            l_acc = (1.0 - out.acc).square().mean()
+            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
+            l_free = self._free_loss(k)
+            total = total + cfg.w_free * l_free
+            losses["free"] += float(l_free.detach() if torch.is_tensor(l_free) else l_free) / st.K
             losses["rgb"] += l_rgb.item() / st.K
             losses["depth"] += l_depth.item() / st.K
+            losses["opacity"] += l_acc.item() / st.K
         self.field_opt.zero_grad(set_to_none=True)
         total.backward()
         self.field_opt.step()
@@ -382,7 +443,7 @@ class Trainer:
         lab = st.labels[frames, p]
         seg_ok = lab >= 0
         l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
-        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg
+        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg + sum(self._tv(k) for k in range(st.K))
         self.field_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.field_opt.step()
@@ -426,7 +487,7 @@ class Trainer:
             idx = torch.nonzero(st.present[k, frames_all])[:, 0]  # absent frames cost nothing
             for a in range(0, len(idx), chunk):
                 i = idx[a : a + chunk]
-                out = render(st.object_rays(self.fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.samples, None, None, cfg.skip_occluded)
+                out = render(st.object_rays(self.fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.label_samples, None, None, cfg.skip_occluded)
                 depth[i, k] = out.normalised_depth()
                 acc[i, k] = out.acc
                 covered[i, k] = out.acc > cfg.coverage_threshold
@@ -457,29 +518,57 @@ class Trainer:
             c = self.render_alone_depths(flat)
             keep = self._contested(flat, c["depth"], c["covered"]) & ~c["uncertain"]
             self.cache = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
+            self.cache["gt"] = self.st.labels.reshape(-1)[self.cache["flat"]]
+            self.cache["constraints"] = order_constraints(self.cache["depth"], self.cache["covered"], self.cache["gt"])
             self.cache_key = phase.start
+
+    def _constraints(self) -> OrderConstraints:
+        """The scale phase's depth-order constraints: every contested pool ray, or a random
+        ``label_rays`` of them per step when that is set (> 0)."""
+        c, n = self.cache, len(self.cache["flat"])
+        if self.cfg.label_rays <= 0 or self.cfg.label_rays >= n:
+            return c["constraints"]
+        r = self._randint(n, self.cfg.label_rays)
+        return order_constraints(c["depth"][r], c["covered"][r], c["gt"][r])
+
+    def _scale_samples(self) -> torch.Tensor:
+        """Normalised free scales for one scale step: uniform in the box, plus a share
+        ``label_replay`` jittered around scale vectors labelled valid earlier (labels are always
+        recomputed, so this only spends samples where the boundary is, never biases a label)."""
+        cfg, st = self.cfg, self.st
+        n = cfg.scale_samples
+        n_near = int(round(n * cfg.label_replay)) if len(self.positives) else 0
+        s = torch.rand(n - n_near, st.K - 1, generator=self.gen)
+        if n_near:
+            pick = self.positives[torch.randint(len(self.positives), (n_near,), generator=self.gen)]
+            sigma = torch.tensor([0.01, 0.03, 0.1])[torch.randint(3, (n_near, 1), generator=self.gen)]
+            near = (pick + sigma * torch.randn(n_near, st.K - 1, generator=self.gen)).clamp(0.0, 1.0 - 1e-6)
+            s = torch.cat([s, near])
+        return s.to(self.device)
+
+    def _remember(self, s: torch.Tensor) -> None:
+        """Keep the last ``REPLAY_SIZE`` scale vectors labelled valid (CPU, checkpointed)."""
+        self.positives = torch.cat([self.positives, s.detach().cpu().float()])[-REPLAY_SIZE:]
 
     def step_scale(self, phase: Phase) -> dict[str, float]:
         self.ensure_cache(phase)
-        cfg, st, c = self.cfg, self.st, self.cache
-        s = torch.rand(cfg.scale_samples, st.K - 1, generator=self.gen).to(self.device)
+        cfg, st = self.cfg, self.st
+        s = self._scale_samples()
         sbar = full_sbar(s, st.ranges, st.anchor)
-        n = len(c["flat"])
-        rays = self._randint(n, min(cfg.label_rays, n)) if n else c["flat"]
-        gt = st.labels.reshape(-1)[c["flat"][rays]]
-        # Noise floor = the batch's best error rate: learned depths have floaters that make some
-        # rays wrong for every scale vector (measured on gnome-house after stage 1: ~15% of
-        # contested rays, even for the ground-truth configurations). Within one batch all
-        # samples share the rays, so "within tolerance of the best" compares like with like.
-        # The pool is already restricted to contested rays (see _contested).
-        seg_err = 1.0 - sample_accuracy(implied_segmentation(c["depth"][rays], c["covered"][rays], sbar), gt)
-        self.noise_floor = float(seg_err.min()) if len(seg_err) else 0.0
-        labels, fell_back = validity_labels(1.0 - seg_err, cfg.label_tolerance, cfg.label_topk, self.noise_floor)
+        cons = self._constraints()
+        # Labels relative to the best sample, per object pair (softz.trimmed_labels): learned
+        # depths have floaters that make some rays wrong for every scale vector. All samples are
+        # scored on the same rays, so "within tolerance of the best" compares like with like.
+        # The pool is already restricted to rays some scale in the box explains (_contested).
+        pv = cons.pair_violations(sbar)
+        self.noise_floor = float(pv.sum(1).min()) / max(cons.count, 1)
+        labels = trimmed_labels(pv, cons.sizes(), cfg.label_trim)
+        self._remember(s[labels > 0])
         loss = F.binary_cross_entropy_with_logits(self.net(s), labels.to(self.device))
         self.net_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.net_opt.step()
-        return {"bce": loss.item(), "valid_frac": float(labels.mean()), "label_fallback": float(fell_back), "contested": float(n), "noise_floor": self.noise_floor}
+        return {"bce": loss.item(), "valid_frac": float(labels.mean()), "contested": float(cons.rays), "noise_floor": self.noise_floor}
 
     # ---- one iteration -------------------------------------------------------------------
 

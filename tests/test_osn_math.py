@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from osn.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.softz import implied_segmentation, soft_segmentation_log, softz_labels, validity_labels
+from osn.softz import implied_segmentation, order_constraints, soft_segmentation_log, softz_labels, trimmed_labels, validity_labels
 from osn.volume import ObjectRays, ray_box, render, transmittance_weights
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -213,6 +213,49 @@ def test_softz_labels_finite_and_correct_over_wide_ranges(K: int, R: int, H: int
     gt = torch.tensor(ref[0])
     labels, acc, fell_back = softz_labels(dt, ct, gt, st_)
     assert labels[0] == 1 and acc[0] == 1 and not fell_back
+
+
+@SETTINGS
+@given(K=st.integers(2, 16), R=st.integers(1, 40), H=st.integers(1, 8), seed=st.integers(0, 2**31 - 1))
+def test_order_constraints_count_what_the_soft_z_buffer_gets_wrong(K: int, R: int, H: int, seed: int) -> None:
+    """On rays covered by exactly two objects, the closed-form violation count equals the number
+    of rays whose implied segmentation disagrees with the label; with more covering objects it
+    counts every object put in front, so it is zero exactly when the segmentation is right."""
+    rng = np.random.default_rng(seed)
+    depth = torch.tensor(10.0 ** rng.uniform(-3, 4, (R, K)))
+    sbar = torch.tensor(10.0 ** rng.uniform(-3, 3, (H, K)))
+    covered = torch.tensor(rng.random((R, K)) < 0.5)
+    gt = torch.tensor(rng.integers(-1, K, R))
+    z = np.log(sbar.numpy())[:, None, :] + np.log(depth.numpy())[None]
+    zz = np.where(covered.numpy()[None], z, np.inf)
+    with np.errstate(invalid="ignore"):  # inf - inf where both objects miss the ray
+        gaps = np.abs(zz[..., :, None] - zz[..., None, :])[..., ~np.eye(K, dtype=bool)]
+    if np.any(gaps[np.isfinite(gaps)] < 1e-9):
+        return  # near-ties: the two forms may round to different winners
+    cons = order_constraints(depth, covered, gt)
+    assert torch.all(torch.isfinite(torch.cat(cons.thresholds))) if cons.thresholds else True
+    v = cons.violations(sbar)
+    ok_gt = (gt >= 0) & covered.gather(1, gt.clamp(0)[:, None])[:, 0]
+    seg = implied_segmentation(depth, covered, sbar)
+    wrong = (seg != gt[None]) & ok_gt[None]
+    two = ok_gt & (covered.sum(1) == 2)
+    contested = ok_gt & (covered.sum(1) >= 2)
+    assert cons.rays == int(contested.sum())
+    single = order_constraints(depth[two], covered[two], gt[two])
+    assert torch.equal(single.violations(sbar), (wrong & two[None]).sum(1).double())
+    assert torch.equal(v == 0, ~(wrong & contested[None]).any(1))
+
+
+def test_trimmed_labels_allow_the_noise_floor_plus_a_share_of_each_pair() -> None:
+    # pairs of 100 and 10 rays; trim 5% allows 5 extra violations on the first, 0 on the second
+    sizes = torch.tensor([100.0, 10.0])
+    pv = torch.tensor([[2.0, 1.0], [7.0, 1.0], [8.0, 1.0], [2.0, 2.0], [0.0, 4.0]], dtype=torch.float64)
+    # best sample (fewest in all) is row 0 (3): its counts are the per-pair floor
+    assert trimmed_labels(pv, sizes, 0.05).tolist() == [1, 1, 0, 0, 0]
+    assert trimmed_labels(pv, sizes, 0.0).tolist() == [1, 0, 0, 0, 0]
+    # one pair's slack is not spent on another: row 4 has none on the large pair but 4 > 1 + 1
+    assert trimmed_labels(pv, sizes, 0.1).tolist() == [1, 1, 1, 1, 0]
+    assert trimmed_labels(pv[:, :0], sizes[:0], 0.01).tolist() == [1] * 5
 
 
 def test_validity_labels_tolerance_and_fallback() -> None:
