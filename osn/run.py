@@ -23,8 +23,9 @@ from .placement import novel_to_training_camera, object_transforms
 from .scale_net import ScaleNet, full_sbar
 from .volume import ObjectRays, RenderOutput, render
 
-#: Version of ``checkpoint.pt`` this module reads. ``osn train`` checkpoints carry no version
-#: key yet and are read as version 1; a different ``version`` is refused with a clear message.
+#: Version of ``checkpoint.pt`` this module reads (2: the scale phase's replay buffer). The first
+#: checkpoints carried no version key and are version 1; another version is refused with a
+#: clear message.
 CHECKPOINT_VERSION = 2
 
 
@@ -140,7 +141,7 @@ def read_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
         raise CheckpointError(f"{path}: not a readable osn checkpoint ({e})") from None
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path}: not an osn checkpoint (a pickled {type(ckpt).__name__})")
-    version = ckpt.get("version", CHECKPOINT_VERSION)  # checkpoints without a version are version 1
+    version = ckpt.get("version", 1)  # the first checkpoints carried no version
     if version != CHECKPOINT_VERSION:
         raise CheckpointError(f"{path}: checkpoint version {version!r}; this toolkit reads version {CHECKPOINT_VERSION}")
     missing = [k for k in ("config", "resolutions", "fields") if k not in ckpt]

@@ -267,9 +267,9 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
 
     run = copy("checkpoint_version")
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
-    ck["version"] = 2
+    ck["version"] = 99
     torch.save(ck, run / "checkpoint.pt")
-    jobs["checkpoint_version"] = (("osn", "sample", run), run / "checkpoint.pt", "checkpoint version 2")
+    jobs["checkpoint_version"] = (("osn", "sample", run), run / "checkpoint.pt", "checkpoint version 99")
 
     run = copy("checkpoint_truncated")
     data = (run / "checkpoint.pt").read_bytes()
