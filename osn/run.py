@@ -23,10 +23,11 @@ from .placement import novel_to_training_camera, object_transforms
 from .scale_net import ScaleNet, full_sbar
 from .volume import ObjectRays, RenderOutput, render
 
-#: Version of ``checkpoint.pt`` this module reads (2: the scale phase's replay buffer). The first
-#: checkpoints carried no version key and are version 1; another version is refused with a
-#: clear message.
+#: Version of ``checkpoint.pt`` that ``osn train`` writes (2 added the scale phase's replay
+#: buffer). The first checkpoints carried no version key and are version 1; both hold the same
+#: fields and network, so both are read; any other version is refused with a clear message.
 CHECKPOINT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 
 class CheckpointError(ValueError):
@@ -142,8 +143,8 @@ def read_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path}: not an osn checkpoint (a pickled {type(ckpt).__name__})")
     version = ckpt.get("version", 1)  # the first checkpoints carried no version
-    if version != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {version!r}; this toolkit reads version {CHECKPOINT_VERSION}")
+    if version not in READABLE_VERSIONS:
+        raise CheckpointError(f"{path}: checkpoint version {version!r}; this toolkit reads versions {', '.join(map(str, READABLE_VERSIONS))}")
     missing = [k for k in ("config", "resolutions", "fields") if k not in ckpt]
     if missing:
         raise CheckpointError(f"{path}: not an osn checkpoint (missing {', '.join(missing)})")

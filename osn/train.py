@@ -328,7 +328,7 @@ class Trainer:
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.iteration, self.field_iter, self.elapsed = s["iteration"], s["field_iter"], s["elapsed"]
         self.fallbacks, self.noise_floor = s["fallbacks"], s["noise_floor"]
-        self.positives = s["positives"]
+        self.positives = s.get("positives", self.positives)  # version 1: resumes with an empty buffer
         self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
         for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
             f.set_resolution(r)
