@@ -352,13 +352,13 @@ class Trainer:
     def _depth_loss(self, out_depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         return F.mse_loss(out_depth, target) if target.numel() else out_depth.sum() * 0.0
 
-    def _free_loss(self, k: int) -> torch.Tensor | float:
+    def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see
         :meth:`SceneTensors.free_pixels`): keeps its field from bleeding past its silhouette,
         which would otherwise read as "k is behind the anchor" to the scale labels."""
         st, cfg, free = self.st, self.cfg, self.free[k]
         if cfg.w_free <= 0 or not len(free):
-            return 0.0
+            return torch.zeros((), device=self.device)
         fp = free[self._randint(len(free), cfg.free_rays)]
         one = torch.ones(st.K, device=self.device)
         out = render(st.object_rays(self.fields, fp // (st.H * st.W), one, [k]), st.dirs[fp % (st.H * st.W)], self.cfg.samples, self.gen, self.bg, cfg.skip_occluded)
@@ -397,7 +397,7 @@ class Trainer:
             total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
             l_free = self._free_loss(k)
             total = total + cfg.w_free * l_free
-            losses["free"] += float(l_free.detach() if torch.is_tensor(l_free) else l_free) / st.K
+            losses["free"] += l_free.item() / st.K
             losses["rgb"] += l_rgb.item() / st.K
             losses["depth"] += l_depth.item() / st.K
             losses["opacity"] += l_acc.item() / st.K

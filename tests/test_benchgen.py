@@ -29,11 +29,9 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("tiny") / "ds"
-    summary = generate(load_preset("tiny"), root, progress=False)
-    assert summary.passed, summary.lines()
-    return root
+def tiny(tiny_dataset) -> Path:
+    """The session's tiny dataset (tests/conftest.py); read-only here."""
+    return tiny_dataset
 
 
 @pytest.fixture(scope="module")
