@@ -133,7 +133,7 @@ class Worker:
         for f in self.built.scene.train_frames:
             base = self._base_frame(f.name)
             out = self.renderer.render(f.camera_to_world, self.built.poses(f.time_index, scales))
-            res.train_stats.append((f.name, compare_training(base.rgb, base.ids, out.rgb, out.ids, base.facing)))
+            res.train_stats.append((f.name, compare_training(base.rgb, base.ids, out.rgb, out.ids, base.facing, out.facing)))
         if task.config:
             scaled = np.abs(np.log(scales) - np.log(np.asarray(task.reference))) > 1e-9
             for name in task.frames:
@@ -311,8 +311,11 @@ def _verify_all(
     for g, s in enumerate(configs):
         cached = state / f"{D.config_dirname(g)}.json"
         if use_cache and cached.exists():
-            results[g] = D.read_json(cached)
-            continue
+            # A verdict is reused only under the thresholds it was reached with.
+            entry = D.read_json(cached)
+            if entry.get("thresholds") == thresholds() and "result" in entry:
+                results[g] = entry["result"]
+                continue
         tasks.append(Task("verify", test_names, g, s.tolist(), configs[0].tolist()))
     T = len(built.scene.train_frames)
     with _progress(len(tasks) * T, "verify", progress) as bar:
@@ -321,7 +324,7 @@ def _verify_all(
             g = r.task.config
             results[g] = summarise(g, configs[g], r.train_stats, r.test_stats)
             if use_cache:
-                D.atomic_write_json(state / f"{D.config_dirname(g)}.json", results[g])
+                D.atomic_write_json(state / f"{D.config_dirname(g)}.json", {"thresholds": thresholds(), "result": results[g]})
             bar.update(T)
     cfgs = [results[g] for g in range(len(configs))]
     return {"passed": all(c["passed"] for c in cfgs), "thresholds": thresholds(), "configurations": cfgs}

@@ -23,7 +23,7 @@ from benchgen.generate import Task, Worker, generate, prepare, verify_dataset
 from benchgen.plausibility import PlausibilityChecker, room_scale_limits
 from benchgen.spec import PRESET_DIR, SpecError, load_preset, load_spec, spec_from_dict
 from benchgen.validity import ValidRegion
-from benchgen.verify import INTERIOR_MIN_FACING, interior_mask, summarise
+from benchgen.verify import CREASE_FACING_CHANGE, INTERIOR_MIN_FACING, compare_training, interior_mask, summarise
 
 pytestmark = pytest.mark.slow
 
@@ -131,6 +131,25 @@ def test_interior_mask_excludes_borders_silhouettes_and_grazing_hits():
     assert not m[:, 4].any() and not m[2, 2]  # next to object 1; grazing
     assert m[1:5, 1:4].sum() == 11
     assert interior_mask(ids)[2, 2]
+
+
+def test_crease_hits_get_the_pixel_budget_not_the_interior_limit():
+    # A re-render whose pixel (3, 3) hit the other face of a crease (facing 0.3 -> 0.04) and is
+    # 0.02 off; a pixel (2, 2) whose facing only rounded differently but whose colour moved.
+    ids = np.zeros((6, 6), dtype=np.uint8)
+    base_rgb = np.full((6, 6, 3), 0.5)
+    base_facing = np.full((6, 6), 0.8, dtype=np.float32)
+    base_facing[3, 3] = 0.3
+    rgb, facing = base_rgb.copy(), base_facing.copy()
+    rgb[3, 3] += 0.02
+    facing[3, 3] = 0.04
+    stats = compare_training(base_rgb, ids, rgb, ids, base_facing, facing)
+    assert stats["max_interior_diff"] == 0.0 and stats["differing_fraction"] == 1 / 36
+    facing[2, 2] += CREASE_FACING_CHANGE / 10
+    rgb[2, 2] += 0.001
+    stats = compare_training(base_rgb, ids, rgb, ids, base_facing, facing)
+    assert abs(stats["max_interior_diff"] - 0.001) < 1e-12  # shading moved without a crease: caught
+    assert compare_training(base_rgb, ids, rgb, ids, base_facing)["max_interior_diff"] > 0.019
 
 
 def test_demo_preset_is_gnome_house_at_demo_size():
