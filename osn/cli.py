@@ -27,10 +27,13 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     from . import preprocess as P
     from .inputs import save_inputs
 
-    cfg = P.PreprocessConfig(
-        matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
-        max_features=args.max_features,
-    )
+    try:
+        cfg = P.PreprocessConfig(
+            matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
+            max_features=args.max_features, upscale=args.upscale, grey=args.grey,
+        )
+    except ValueError as e:
+        raise UserError(f"osn preprocess: {e}") from None
     t0 = time.perf_counter()
     src = Path(args.source)
     progress = (lambda msg: print(f"  {msg} ...", flush=True))
@@ -100,6 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="feature matching; auto = exhaustive up to 60 frames, sequential beyond")
     p.add_argument("--min-frames", type=int, default=3, help="an object must register at least this many frames")
     p.add_argument("--max-features", type=int, default=4096, help="SIFT features per frame and object")
+    p.add_argument("--upscale", type=int, default=2,
+                   help="upsample frames by this integer factor before SIFT (objects under ~100 px need 2)")
+    p.add_argument("--grey", choices=["auto", "luminance", "principal"], default="auto",
+                   help="grey image SIFT sees: luminance, the object's principal colour axis, or auto "
+                   "(principal only for objects whose colours differ mostly in hue, e.g. red on blue)")
     p.add_argument("--on-failure", choices=["stop", "skip"], default="stop",
                    help="an object that fails to register: stop with its message, or train without it")
     p.add_argument("--seed", type=int, default=0, help="every pycolmap random seed")

@@ -114,3 +114,65 @@ def test_cli_failure_is_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(tmp_path), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "--masks MASKS_DIR is required" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_principal_grey_keeps_texture_that_luminance_loses():
+    """A red/blue pattern of equal luminance is blank to SIFT in luminance, not on its colour axis."""
+    rng = np.random.default_rng(0)
+    pattern = rng.random((3, 24, 24)) > 0.5  # three frames of a two-colour texture
+    red, blue = np.array([200.0, 40.0, 60.0]), np.array([0.0, 0.0, 0.0])
+    # The blue whose luminance equals the red's: solve LUMA . blue = LUMA . red with B free.
+    blue[2] = 230.0
+    blue[1] = (P.LUMA @ red - P.LUMA[2] * blue[2]) / P.LUMA[1]
+    images = np.where(pattern[..., None], red, blue).astype(np.uint8)
+    masks = np.ones(pattern.shape, dtype=bool)
+    assert np.ptp(images.astype(float) @ P.LUMA) < 1.0  # luminance sees nothing
+    grey = P.principal_grey(images, masks, "auto")
+    assert grey is not None and grey.shape == pattern.shape and grey.dtype == np.uint8
+    # One mapping for every frame: each colour gets one grey level, and the full range is used.
+    assert set(np.unique(grey[pattern])) == {255} and set(np.unique(grey[~pattern])) == {0}
+    # A light/dark pattern keeps luminance under auto (None), but principal mode still projects.
+    dark = np.where(pattern[..., None], [220, 210, 200], [40, 30, 30]).astype(np.uint8)
+    assert P.principal_grey(dark, masks, "auto") is None
+    assert np.array_equal(P.principal_grey(dark, masks, "principal") > 127, pattern)
+    # Pixels outside the mask do not choose the axis.
+    noisy = images.copy()
+    noisy[:, :4] = rng.integers(0, 256, (3, 4, 24, 3))
+    inner = masks.copy()
+    inner[:, :4] = False
+    g = P.principal_grey(noisy, inner, "principal")
+    assert set(np.unique(g[inner & pattern])) == {255} and set(np.unique(g[inner & ~pattern])) == {0}
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="grey"):
+        P.PreprocessConfig(grey="green")
+    with pytest.raises(ValueError, match="upscale"):
+        P.PreprocessConfig(upscale=0)
+
+
+def test_isoluminant_object_registers_on_its_colour_axis(sfm_scene):
+    """The ball repainted so that its texture lives in hue only: luminance SIFT finds nothing,
+    the principal colour axis (``grey="auto"``) registers it against ground truth."""
+    from benchgen.cameras import fit_pose_similarity, rotation_angle_deg
+    from osn.inputs import OracleConfig, oracle_inputs
+
+    orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
+    ball = orc.masks == 1
+    rgb = orc.images.astype(np.float64)
+    luma = rgb @ P.LUMA
+    hue_axis = np.array([1.0, -P.LUMA[0] / P.LUMA[1], 0.0])  # zero luminance
+    iso = rgb.copy()
+    iso[ball] = 128.0 + 3.0 * (luma[ball] - luma[ball].mean())[:, None] * hue_axis
+    iso = np.clip(np.rint(iso), 0, 255).astype(np.uint8)
+    assert np.std(iso[ball].astype(float) @ P.LUMA) < 1.0
+    with pytest.raises(P.ObjectRegistrationError, match="features"):
+        P.reconstruct_object(iso, orc.masks, 1, orc.K, P.PreprocessConfig(grey="luminance"), "ball")
+    sfm = P.reconstruct_object(iso, orc.masks, 1, orc.K, P.PreprocessConfig(grey="auto"), "ball")
+    assert len(sfm.frames) >= 6
+    gt = orc.object(1)
+    poses = gt.cam_to_obj[[gt.frame_slot(int(t)) for t in sfm.frames]]
+    S = fit_pose_similarity(sfm.cam_to_obj, poses)
+    R = S[:3, :3] / np.cbrt(np.linalg.det(S[:3, :3]))
+    errors = [rotation_angle_deg(R @ a[:3, :3], b[:3, :3]) for a, b in zip(sfm.cam_to_obj, poses)]
+    assert max(errors) < 10.0, errors  # the ball in its own colours: 6.6 degrees at 128 px
