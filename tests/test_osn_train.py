@@ -221,3 +221,10 @@ def test_scale_phase_samples_near_earlier_valid_vectors_and_resumes_them(tiny_da
     assert len(tr2.positives) == 0
     tr2.load_state_dict(tr.state_dict())
     assert torch.equal(tr2.positives, tr.positives)
+
+
+def test_auto_label_stride_keeps_the_pool_size_of_a_128_pixel_frame():
+    from osn.train import label_stride
+
+    assert [label_stride(0, s, s) for s in (32, 64, 128, 129, 256, 512)] == [1, 1, 1, 2, 2, 4]
+    assert label_stride(0, 300, 512) == 4 and label_stride(3, 512, 512) == 3
