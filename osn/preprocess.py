@@ -103,6 +103,8 @@ class PreprocessConfig:
             raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
         if self.upscale < 1:
             raise ValueError(f"upscale must be a positive integer, got {self.upscale}")
+        if not self.epipolar_error > 0:
+            raise ValueError(f"epipolar_error must be a positive number of pixels, got {self.epipolar_error}")
         if self.grey not in GREY_MODES:
             raise ValueError(f"grey must be one of {', '.join(GREY_MODES)}, got {self.grey!r}")
         if self.on_failure not in ("stop", "skip"):

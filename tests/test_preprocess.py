@@ -149,6 +149,8 @@ def test_config_rejects_bad_values():
         P.PreprocessConfig(grey="green")
     with pytest.raises(ValueError, match="upscale"):
         P.PreprocessConfig(upscale=0)
+    with pytest.raises(ValueError, match="epipolar_error"):
+        P.PreprocessConfig(epipolar_error=float("nan"))
 
 
 def test_isoluminant_object_registers_on_its_colour_axis(sfm_scene):
