@@ -65,7 +65,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         if "error" in r:
             print(f"  object {r['id']} ({r['name']}): DROPPED: {r['error']}")
             continue
-        line = f"  object {r['id']} ({r['name']}): {r['registered_frames']}/{r['candidate_frames']} frames, {r['points']} points"
+        line = (f"  object {r['id']} ({r['name']}): {r['registered_frames']}/{r['candidate_frames']} frames, {r['points']} points, "
+                f"reprojection error {r['reprojection_error_px']:.2f} px")
         if "rotation_error_deg_max" in r:
             line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
                      f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")

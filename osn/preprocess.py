@@ -127,6 +127,10 @@ class ObjectSfM:
     num_features: int
     num_points: int
     candidate_frames: int
+    #: Mean reprojection error of the kept reconstruction, in input-frame pixels.
+    reprojection_error_px: float = float("nan")
+    #: Every model of every mapper restart: seed, frames registered, mean reprojection error (px).
+    restarts: list[dict] = field(default_factory=list)
 
 
 @dataclass
@@ -285,18 +289,22 @@ def reconstruct_object(
         opts.mapper.init_min_num_inliers = cfg.init_min_inliers
         opts.mapper.init_min_tri_angle = cfg.init_min_tri_angle
         opts.mapper.abs_pose_min_num_inliers = cfg.abs_pose_min_inliers
-        rec = _best_of_restarts(db, img_dir, out_dir, opts, cfg)
+        rec, tried = _best_of_restarts(db, img_dir, out_dir, opts, cfg)
         if rec is None:
             raise ObjectRegistrationError(
                 f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {advice}"
             )
-        return _collect(rec, label, frames, num_features, cfg, advice, W, H)
+        sfm = _collect(rec, label, frames, num_features, cfg, advice, W, H)
+        sfm.reprojection_error_px = rec.compute_mean_reprojection_error() / cfg.upscale
+        sfm.restarts = tried
+        return sfm
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: PreprocessConfig):
-    """Incremental mapping from ``cfg.mapper_restarts`` seeds; the best reconstruction or None.
+def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: PreprocessConfig) -> tuple[object, list[dict]]:
+    """Incremental mapping from ``cfg.mapper_restarts`` seeds: the best reconstruction (None if
+    no restart found one) and, per model found, its seed, frames and mean reprojection error.
 
     A small object seen nearly in weak perspective has a depth-reversed twin: the mapper can
     settle in either, and the reversed one turns its rotations the wrong way, by an error that
@@ -307,16 +315,18 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: Preproc
     """
     import pycolmap
 
-    best, best_key = None, None
+    best, best_key, tried = None, None, []
     for k in range(max(cfg.mapper_restarts, 1)):
         opts.random_seed = opts.mapper.random_seed = cfg.seed + k
         (out_dir / str(k)).mkdir()
         recs = pycolmap.incremental_mapping(db, img_dir, out_dir / str(k), options=opts)
         for rec in recs.values():
-            key = (rec.num_reg_images(), -rec.compute_mean_reprojection_error())
+            err = rec.compute_mean_reprojection_error()
+            tried.append({"seed": cfg.seed + k, "registered_frames": rec.num_reg_images(), "reprojection_error_px": err / cfg.upscale})
+            key = (rec.num_reg_images(), -err)
             if best_key is None or key > best_key:
                 best, best_key = rec, key
-    return best
+    return best, tried
 
 
 def _collect(
@@ -413,6 +423,10 @@ def preprocess_video(
                 "registered_frames": len(sfm.frames),
                 "features": sfm.num_features,
                 "points": sfm.num_points,
+                # Without ground truth these say how much to trust the poses: the kept model's
+                # error, and how the restarts disagreed (a reversed twin fits visibly worse).
+                "reprojection_error_px": sfm.reprojection_error_px,
+                "restarts": sfm.restarts,
             }
         )
     masks = masks.copy()

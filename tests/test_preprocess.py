@@ -47,6 +47,17 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         else:
             assert r["registered_frames"] >= 3 and r["rotation_error_deg_max"] <= 10.0, r
     assert len(report.dropped) <= 1
+    # The kept model is, among every restart's models, the one registering the most frames
+    # and, among those, the one with the lowest reprojection error.
+    for r in report.objects:
+        if "error" in r:
+            continue
+        tried = r["restarts"]
+        assert {t["seed"] for t in tried} <= set(range(cfg.mapper_restarts)) and len(tried) >= 1
+        most = max(t["registered_frames"] for t in tried)
+        assert r["registered_frames"] <= most  # frames without a usable point are dropped after
+        assert r["reprojection_error_px"] == pytest.approx(min(t["reprojection_error_px"] for t in tried if t["registered_frames"] == most))
+        assert 0 < r["reprojection_error_px"] < 2.0
     for o in inputs.objects:
         assert np.median(np.concatenate(o.sparse_depth)) == pytest.approx(1.0)
         R = o.cam_to_obj[:, :3, :3]
