@@ -769,12 +769,15 @@ def train(
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``osn train DATASET --out RUN [--config FILE] [--resume]``."""
-    from benchgen.cliutil import subcommand
+    from benchgen.cliutil import UserError, subcommand
 
     def _cmd(args: argparse.Namespace) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        if args.resume and (args.config or args.inputs):
+            # A resumed run keeps the config and inputs it started with (saved in --out).
+            raise UserError(f"{args.out}: --resume continues with the run's own config.yaml and inputs; drop --config/--inputs")
         cfg = TrainConfig.from_yaml(args.config) if args.config else None
-        inputs = load_inputs(args.inputs) if args.inputs and not args.resume else None
+        inputs = load_inputs(args.inputs) if args.inputs else None
         run = train(args.dataset, args.out, cfg, resume=args.resume, inputs=inputs, max_iterations=args.max_iterations)
         last = Path(run) / "metrics.jsonl"
         if last.exists():
@@ -789,5 +792,6 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="YAML training config; omitted keys take the CPU defaults (configs/osn-cpu.yaml)")
     p.add_argument("--inputs", help="per-object inputs directory from `osn preprocess` (or `osn oracle`); "
                    "default: oracle inputs derived from the dataset's ground truth")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its last checkpoint, with the config and inputs it started with")
     p.add_argument("--max-iterations", type=int, default=None, help="stop after this global iteration (resumable)")

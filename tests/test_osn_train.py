@@ -228,3 +228,21 @@ def test_auto_label_stride_keeps_the_pool_size_of_a_128_pixel_frame():
 
     assert [label_stride(0, s, s) for s in (32, 64, 128, 129, 256, 512)] == [1, 1, 1, 2, 2, 4]
     assert label_stride(0, 300, 512) == 4 and label_stride(3, 512, 512) == 3
+
+
+def test_label_pool_uses_the_configured_or_automatic_stride(tiny_dataset: Path) -> None:
+    inputs = oracle_inputs(tiny_dataset)
+    pools = {k: Trainer(inputs, _cfg(label_stride=k), torch.device("cpu"))._label_pixels() for k in (0, 1, 2)}
+    W = inputs.images.shape[2]
+    assert torch.equal(pools[0], pools[1])  # 32 px frames: automatic = every pixel
+    x, y = pools[2] % W, (pools[2] // W) % inputs.images.shape[1]
+    assert torch.all(x % 2 == 0) and torch.all(y % 2 == 0) and 0 < len(pools[2]) < len(pools[1]) / 3
+
+
+def test_resume_refuses_a_new_config_or_inputs(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "train", str(tmp_path), "--out", str(tmp_path / "run"),
+                        "--resume", "--inputs", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 2 and "drop --config/--inputs" in r.stderr and "Traceback" not in r.stderr
