@@ -29,7 +29,9 @@ def run_cli(
         rc = args.func(args)
         return int(rc or 0)
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted; run the same command again to resume", file=sys.stderr)
+        # Subcommands whose rerun needs a flag to continue (``osn train --resume``) say so.
+        hint = getattr(args, "resume_hint", "run the same command again to resume")
+        print(f"{prog}: interrupted; {hint}", file=sys.stderr)
         return 130
     except USER_ERRORS as e:
         if getattr(args, "debug", False):

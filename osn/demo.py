@@ -9,7 +9,6 @@ interrupted one (generation and training resume internally).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from dataclasses import replace
@@ -17,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from benchgen.cliutil import UserError, subcommand
+
 from .stages import Stage, run_stages
 
 log = logging.getLogger(__name__)
@@ -68,6 +68,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
 
     def preprocess() -> dict:
         from benchgen.dataset import atomic_write_json
+
         from .inputs import InputsError, oracle_inputs, save_inputs
         from .preprocess import PreprocessConfig, preprocess_dataset
 
@@ -93,13 +94,14 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
 
     def train() -> dict:
         from .inputs import load_inputs
+        from .train import read_metrics
         from .train import train as train_run
 
         resume = (run_dir / "checkpoint.pt").exists()
         cfg = _scaled_config(args.iterations, args.train_config)
         inputs = None if resume else load_inputs(sfm if args.inputs == "colmap" else oracle_dir)
         train_run(dataset, run_dir, cfg, resume=resume, inputs=inputs)
-        last = json.loads((run_dir / "metrics.jsonl").read_text().splitlines()[-1])
+        last = read_metrics(run_dir / "metrics.jsonl")[-1]
         print(f"  training: PSNR {last.get('psnr', float('nan')):.2f} dB, valid-set IoU {last.get('iou', float('nan')):.3f} "
               f"after {last['wall_time']:.0f} s")
         return {k: last.get(k) for k in ("psnr", "iou", "wall_time", "iteration")}
@@ -110,10 +112,11 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
 
         s = sample_configurations(load_run(run_dir), args.n, args.threshold, args.seed)
         s.save(run_dir / "samples.npz")
-        return {"n": int(len(s.sbar)), "fell_back": s.fell_back}
+        return {"n": len(s.sbar), "fell_back": s.fell_back}
 
     def evaluate() -> dict:
-        from .evaluate import EvalConfig, Samples, evaluate as ev
+        from .evaluate import EvalConfig, Samples
+        from .evaluate import evaluate as ev
         from .report import write_report
         from .run import load_run
 
@@ -126,7 +129,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     def export() -> dict:
         from .export import export_run
 
-        export_run(run_dir, export_dir, samples=16, seed=args.seed)
+        export_run(run_dir, export_dir)  # the configurations the sample stage drew and evaluated
         return {}
 
     def addon() -> dict:

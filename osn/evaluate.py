@@ -95,7 +95,9 @@ def sample_configurations(run: TrainedRun, n: int, threshold: float = VALID_THRE
         ok = p > threshold
         kept_s.append(s[ok])
         kept_p.append(p[ok])
-        top = np.argsort(-p)[:n]
+        # Fallback pool: only candidates not already kept, so no vector is returned twice.
+        rest = np.flatnonzero(~ok)
+        top = rest[np.argsort(-p[rest])[:n]]
         best_s, best_p = np.concatenate([best_s, s[top]]), np.concatenate([best_p, p[top]])
     s_all = np.concatenate(kept_s)[:n]
     p_all = np.concatenate(kept_p)[:n]

@@ -458,7 +458,7 @@ def export_scene_from_inputs(
         raise ExportFormatError(f"the anchor ({anchor.name}) has poses at {len(anchor.frames)} of {T} frames; it must be seen in all")
     c2s = np.stack([anchor.cam_to_obj[anchor.frame_slot(t)] for t in range(T)])
     ranges = inputs.scale_ranges()
-    anchor_index = [o.id for o in inputs.objects].index(inputs.anchor)
+    anchor_index = inputs.anchor_pos
     sn = scale_network
     if sn is None:
         intervals = core.learned_intervals(None, ranges, anchor_index)
@@ -568,11 +568,15 @@ def _test_rig(dataset: str | None, T: int) -> np.ndarray | None:
     return rig if len(views) else None
 
 
+#: Configurations drawn for an export when the run has no ``samples.npz`` and none are asked for.
+DEFAULT_EXPORT_SAMPLES = 16
+
+
 def export_run(
     run_dir: str | Path,
     out_dir: str | Path,
     resolution: int | None = None,
-    samples: int = 0,
+    samples: int | None = None,
     seed: int = 0,
     echo: Any = print,
 ) -> Path:
@@ -581,13 +585,16 @@ def export_run(
     Reads the run's ``inputs/`` and ``checkpoint.pt`` (fields at their trained resolutions, the
     scale network, the training config), samples every field on a ``resolution^3`` grid
     (default: the field's own resolution), derives the learned valid intervals from the scale
-    network, adds the dataset's test rig when the dataset is reachable and ``samples`` valid
-    configurations drawn through the scale network (seeded) unless ``RUN/samples.npz`` from
-    ``osn sample`` exists, whose configurations are exported instead.
+    network, adds the dataset's test rig when the dataset is reachable, and valid configurations:
+    with ``samples=None`` those of ``RUN/samples.npz`` (``osn sample``, the ones evaluated) when
+    it exists, else ``DEFAULT_EXPORT_SAMPLES`` drawn through the scale network; with a number,
+    that many drawn through the network with ``seed`` (0: none).
     """
     from .run import load_run
     from .scale_net import VALID_THRESHOLD
 
+    if samples is not None and samples < 0:
+        raise ValueError(f"the number of exported samples must be >= 0, got {samples}")
     run = Path(run_dir)
     trained = load_run(run)
     inputs = trained.inputs
@@ -604,11 +611,14 @@ def export_run(
     test = _test_rig(dataset, len(inputs.timestamps)) if inputs.world_to_anchor is not None else None
     scene = export_scene_from_inputs(inputs, grids, net, test_camera_to_world=test, source=str(run.resolve()))
     scene.meta.update({"name": run.name, "iteration": trained.iteration, "dataset": dataset})
-    if (run / "samples.npz").is_file():  # `osn sample` output, when present, is what gets exported
+    if samples is None and (run / "samples.npz").is_file():
         from .evaluate import Samples
 
         scene.samples = Samples.load(run / "samples.npz").sbar
-    elif samples > 0 and net is not None:
+        echo(f"export: {len(scene.samples)} configurations from {run / 'samples.npz'}")
+    elif samples is None:
+        samples = DEFAULT_EXPORT_SAMPLES
+    if samples and net is not None:
         ranges = np.array([o.scale_range for o in scene.objects])
         anchor_index = [o.is_anchor for o in scene.objects].index(True)
 
@@ -637,5 +647,7 @@ def add_export_parser(sub: Any) -> None:
     p.add_argument("run", help="osn train run directory (config.yaml, inputs/, checkpoint.pt)")
     p.add_argument("--out", required=True, help="export directory (created, or replaces a previous export)")
     p.add_argument("--resolution", type=int, help="grid samples per axis (default: each field's trained resolution)")
-    p.add_argument("--samples", type=int, default=16, help="valid configurations to sample through the scale network")
-    p.add_argument("--seed", type=int, default=0, help="seed of the sampled configurations")
+    p.add_argument("--samples", type=int, default=None,
+                   help="valid configurations to draw through the scale network (0: none); default: the run's "
+                   f"samples.npz from `osn sample` when present, else {DEFAULT_EXPORT_SAMPLES}")
+    p.add_argument("--seed", type=int, default=0, help="seed of the configurations drawn (unused for samples.npz)")

@@ -97,6 +97,14 @@ class SceneInputs:
     def num_objects(self) -> int:
         return len(self.objects)
 
+    @property
+    def anchor_pos(self) -> int:
+        """Position of the anchor in ``objects`` (``anchor`` is its id, as in the masks)."""
+        for k, o in enumerate(self.objects):
+            if o.id == self.anchor:
+                return k
+        raise InputsError(f"the anchor (object {self.anchor}) is not among the objects {[o.id for o in self.objects]}")
+
     def object(self, object_id: int) -> ObjectInputs:
         """The inputs of object ``object_id`` (ids index the masks; dropped objects are absent)."""
         for o in self.objects:
@@ -114,12 +122,12 @@ class SceneInputs:
         ``sbar_k = s_k * unit_k / unit_anchor``; needs the oracle's ``unit_to_world``.
         """
         u = self._units()
-        return np.asarray(actual_scales) * u / u[self.anchor]
+        return np.asarray(actual_scales) * u / u[self.anchor_pos]
 
     def actual_scales(self, sbar: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`true_scales`: de-normalised scales to dataset scales."""
         u = self._units()
-        return np.asarray(sbar) * u[self.anchor] / u
+        return np.asarray(sbar) * u[self.anchor_pos] / u
 
     def _units(self) -> np.ndarray:
         u = [o.unit_to_world for o in self.objects]
@@ -267,17 +275,36 @@ def _inputs_from(meta: dict[str, Any], arr: dict[str, np.ndarray]) -> SceneInput
 
 
 def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
-    """Raise ``InputsError`` on shapes, non-finite poses or inverted ranges."""
+    """Raise ``InputsError`` on shapes, an unknown anchor, frames outside the video, sparse
+    pixels outside the image, empty boxes, non-finite poses or inverted ranges."""
     T = len(inputs.timestamps)
     if inputs.images.shape != (T, inputs.height, inputs.width, 3):
         raise InputsError(f"{where}: images have shape {inputs.images.shape}, expected {(T, inputs.height, inputs.width, 3)}")
     if inputs.masks.shape != (T, inputs.height, inputs.width):
         raise InputsError(f"{where}: masks have shape {inputs.masks.shape}")
+    if not inputs.objects:
+        raise InputsError(f"{where}: no objects")
+    try:
+        _ = inputs.anchor_pos
+    except InputsError as e:
+        raise InputsError(f"{where}: {e}") from None
     for o in inputs.objects:
+        label = f"object {o.id} ({o.name})"
         if len(o.frames) == 0:
-            raise InputsError(f"{where}: object {o.id} ({o.name}) has no frames")
+            raise InputsError(f"{where}: {label} has no frames")
+        if np.any(o.frames < 0) or np.any(o.frames >= T):
+            raise InputsError(f"{where}: {label} uses frames outside 0..{T - 1}")
         if o.cam_to_obj.shape != (len(o.frames), 4, 4) or not np.all(np.isfinite(o.cam_to_obj)):
-            raise InputsError(f"{where}: object {o.id} ({o.name}) has malformed or non-finite poses")
+            raise InputsError(f"{where}: {label} has malformed or non-finite poses")
+        box = np.asarray(o.bbox, dtype=np.float64)
+        if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+            raise InputsError(f"{where}: {label} has an empty or malformed box {box.tolist()}")
+        if not (len(o.sparse_pix) == len(o.sparse_depth) == len(o.sparse_weight) == len(o.frames)):
+            raise InputsError(f"{where}: {label} needs one sparse-depth entry per frame")
+        for pix in o.sparse_pix:
+            pix = np.asarray(pix).reshape(-1, 2)
+            if np.any(pix < 0) or np.any(pix[:, 0] >= inputs.width) or np.any(pix[:, 1] >= inputs.height):
+                raise InputsError(f"{where}: {label} has sparse pixels outside the {inputs.width}x{inputs.height} image")
         scale_range(inputs.scene_near, inputs.scene_far, o.near, o.far)
 
 

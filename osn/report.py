@@ -6,7 +6,6 @@ time, from ``metrics.jsonl``) and the search time against N are first-class plot
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -51,9 +50,10 @@ def _save_fig(fig, path: Path) -> None:
 
 
 def training_curve(metrics_jsonl: Path) -> list[dict[str, Any]]:
-    if not metrics_jsonl.exists():
-        return []
-    return [json.loads(ln) for ln in metrics_jsonl.read_text().splitlines() if ln.strip()]
+    """The training run's metric records (lines cut by a kill are skipped)."""
+    from .train import read_metrics
+
+    return read_metrics(metrics_jsonl)
 
 
 def write_plots(res: EvalResult, train_log: list[dict[str, Any]], out: Path) -> list[str]:

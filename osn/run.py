@@ -49,7 +49,7 @@ class TrainedRun:
 
     @property
     def anchor_pos(self) -> int:
-        return next(k for k, o in enumerate(self.inputs.objects) if o.id == self.inputs.anchor)
+        return self.inputs.anchor_pos
 
     @property
     def ranges(self) -> np.ndarray:

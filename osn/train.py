@@ -108,6 +108,24 @@ class TrainConfig:
     checkpoint_every: int = 250
     device: str = "auto"
 
+    #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
+    _POSITIVE = ("rays_per_object", "rays", "samples", "scale_width", "scale_layers", "scale_samples",
+                 "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
+    #: Counts that may be 0 (a phase or a term switched off) but not negative.
+    _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
+                     "free_band", "label_rays", "label_erode", "label_stride")
+
+    def __post_init__(self) -> None:
+        for name in self._POSITIVE:
+            if not getattr(self, name) >= 1:
+                raise ValueError(f"training config: {name} must be >= 1, got {getattr(self, name)!r}")
+        for name in self._NON_NEGATIVE:
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"training config: {name} must be >= 0, got {getattr(self, name)!r}")
+        for name in ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc", "valid_threshold"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"training config: {name} must lie in [0, 1], got {getattr(self, name)!r}")
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
         d = dict(d or {})
@@ -120,7 +138,10 @@ class TrainConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "TrainConfig":
-        return cls.from_dict(yaml.safe_load(Path(path).read_text()) or {})
+        try:
+            return cls.from_dict(yaml.safe_load(Path(path).read_text()) or {})
+        except (ValueError, TypeError, yaml.YAMLError) as e:
+            raise ValueError(f"{path}: {e}") from None
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -176,7 +197,7 @@ class SceneTensors:
         self.labels = torch.from_numpy(pos_of_id[inputs.masks.reshape(T, H * W)]).to(device)  # -1 = none
         _, d = pixel_rays(inputs.K, np.eye(4), W, H)
         self.dirs = torch.from_numpy(d).float().to(device)  # (HW, 3), camera frame, unit z
-        self.anchor = next(k for k, o in enumerate(inputs.objects) if o.id == inputs.anchor)
+        self.anchor = inputs.anchor_pos
         self.poses = torch.eye(4, device=device).repeat(self.K, T, 1, 1)
         self.present = torch.zeros(self.K, T, dtype=torch.bool, device=device)
         self.t_range = torch.zeros(self.K, 2, device=device)  # object-unit planar depth range
@@ -681,17 +702,28 @@ def _save_checkpoint(path: Path, trainer: Trainer) -> None:
     D.atomic_write_bytes(path, buf.getvalue())
 
 
+def read_metrics(path: str | Path) -> list[dict[str, Any]]:
+    """The records of a run's ``metrics.jsonl`` (empty if absent). A line cut by a kill
+    mid-write, or anything else that is not a record with an ``iteration``, is skipped."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    out = []
+    for ln in path.read_text().splitlines():
+        try:
+            rec = json.loads(ln)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and isinstance(rec.get("iteration"), int):
+            out.append(rec)
+    return out
+
+
 def _truncate_metrics(path: Path, iteration: int) -> None:
     """Drop metric lines written after the checkpoint being resumed (they will be rewritten)."""
     if not path.exists():
         return
-    lines = []
-    for ln in path.read_text().splitlines():
-        try:
-            if json.loads(ln)["iteration"] <= iteration:
-                lines.append(ln)
-        except (json.JSONDecodeError, KeyError, TypeError):
-            continue  # a line cut by a kill mid-write; it is rewritten from the checkpoint
+    lines = [json.dumps(rec) for rec in read_metrics(path) if rec["iteration"] <= iteration]
     D.atomic_write_bytes(path, ("\n".join(lines) + "\n" if lines else "").encode())
 
 
@@ -721,6 +753,9 @@ def train(
     else:
         if ckpt.exists():
             raise FileExistsError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+        # A run killed before its first checkpoint may have left metric lines; a fresh start
+        # rewrites them, so they must not stay in front of the new curve.
+        (out / "metrics.jsonl").unlink(missing_ok=True)
         cfg = cfg or TrainConfig()
         inputs = inputs if inputs is not None else oracle_inputs(dataset)
         out.mkdir(parents=True, exist_ok=True)
@@ -779,14 +814,15 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         cfg = TrainConfig.from_yaml(args.config) if args.config else None
         inputs = load_inputs(args.inputs) if args.inputs else None
         run = train(args.dataset, args.out, cfg, resume=args.resume, inputs=inputs, max_iterations=args.max_iterations)
-        last = Path(run) / "metrics.jsonl"
-        if last.exists():
-            rec = json.loads(last.read_text().splitlines()[-1])
+        records = read_metrics(Path(run) / "metrics.jsonl")
+        if records:
+            rec = records[-1]
             summary = {k: rec[k] for k in ("iteration", "wall_time", "psnr", "iou", "precision", "recall", "scale_rel_err") if k in rec}
             print(json.dumps(summary))
         return 0
 
     p = subcommand(sub, "train", _cmd, "train per-object fields and the object scale network on a dataset")
+    p.set_defaults(resume_hint="run the same command with --resume to continue")
     p.add_argument("dataset", help="benchgen dataset directory (oracle per-object inputs are derived from it)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, metrics.jsonl, config, inputs)")
     p.add_argument("--config", help="YAML training config; omitted keys take the CPU defaults (configs/osn-cpu.yaml)")

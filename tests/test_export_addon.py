@@ -384,6 +384,20 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
             p_obj = invert_pose(obj_to_scene) @ data.camera_to_scene[t] @ x
             np.testing.assert_allclose(p_obj[:3], (o.cam_to_obj[slot] @ np.r_[x[:3] / sbar, 1.0])[:3], atol=1e-9)
 
+    # With `osn sample` output in the run, a plain export carries exactly those (evaluated)
+    # configurations; an explicit --samples still draws that many new ones.
+    from osn.evaluate import Samples
+
+    sbar = np.ones((3, len(inputs.objects)))
+    sbar[:, data.free_indices] = 1.1
+    Samples(np.zeros((3, len(inputs.objects) - 1)), sbar, np.ones(3), 0.5, 0).save(run / "samples.npz")
+    assert main(["export", str(run), "--out", str(tmp_path / "e2")]) == 0
+    np.testing.assert_allclose(core.read_export(str(tmp_path / "e2")).samples, sbar)
+    assert main(["export", str(run), "--out", str(tmp_path / "e3"), "--samples", "4"]) == 0
+    assert core.read_export(str(tmp_path / "e3")).samples.shape == (4, len(inputs.objects))
+    assert main(["export", str(run), "--out", str(tmp_path / "e4"), "--samples", "-1"]) == 2
+    assert not (tmp_path / "e4").exists()
+
 
 # --------------------------------------------------------------------------------------------
 # Blender side (run as a script in a subprocess)

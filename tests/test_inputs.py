@@ -58,6 +58,39 @@ def test_scale_conversions_and_ranges(oracle):
     assert inp.true_scales(np.ones(3))[inp.anchor] == 1.0
 
 
+def test_anchor_is_found_by_id_not_by_position(oracle):
+    """With the anchor's object dropped from position 0 (SfM skipped an object) or listed last,
+    scales are still relative to the anchor's unit, and an unknown anchor is a clear error."""
+    import dataclasses
+
+    _, _, inp = oracle
+    units = np.array([o.unit_to_world for o in inp.objects])
+    assert len(set(units.round(9))) == 3  # distinct units, or the test could not tell positions apart
+    reordered = dataclasses.replace(inp, objects=inp.objects[::-1])
+    sbar = reordered.true_scales(np.ones(3))
+    assert reordered.anchor_pos == 2 and sbar[2] == 1.0
+    assert np.allclose(sbar, units[::-1] / units[0])
+    dropped = dataclasses.replace(inp, objects=inp.objects[1:], anchor=inp.objects[1].id)
+    assert np.allclose(dropped.true_scales(np.ones(2)), units[1:] / units[1])
+    with pytest.raises(I.InputsError, match=r"the anchor \(object 7\) is not among the objects"):
+        I.check_inputs(dataclasses.replace(inp, anchor=7), "x")
+
+
+def test_malformed_object_inputs_are_named(oracle):
+    import dataclasses
+
+    _, _, inp = oracle
+    o = inp.objects[1]
+    bad_frames = dataclasses.replace(o, frames=o.frames + 100)
+    bad_pix = dataclasses.replace(o, sparse_pix=[p + inp.width for p in o.sparse_pix])
+    bad_box = dataclasses.replace(o, bbox=o.bbox[::-1])
+    for obj, msg in ((bad_frames, "frames outside"), (bad_pix, "sparse pixels outside"), (bad_box, "empty or malformed box")):
+        objects = list(inp.objects)
+        objects[1] = obj
+        with pytest.raises(I.InputsError, match=f"x: object {o.id} .*{msg}"):
+            I.check_inputs(dataclasses.replace(inp, objects=objects), "x")
+
+
 def test_inverted_range_is_an_error():
     with pytest.raises(I.InputsError, match="empty scale range"):
         I.scale_range(1.0, 2.0, 0.5, 3.0)

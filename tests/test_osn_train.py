@@ -74,9 +74,27 @@ def test_resume_equals_uninterrupted(tiny_dataset: Path, tmp_path: Path) -> None
 def test_resume_refuses_to_overwrite_and_needs_a_checkpoint(tiny_dataset: Path, tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError):
         train(None, tmp_path / "nothing", resume=True, progress=False)
-    run = train(tiny_dataset, tmp_path / "r", _cfg(stage1_iters=2, rounds=0, final_scale_iters=0), progress=False)
+    out = tmp_path / "r"
+    out.mkdir()
+    # A run killed before its first checkpoint leaves metric lines and no checkpoint; a fresh
+    # start must not keep them in front of its own curve.
+    (out / "metrics.jsonl").write_text('{"iteration": 20, "stale": true}\n{"iteration": 40, "sta')
+    run = train(tiny_dataset, out, _cfg(stage1_iters=2, rounds=0, final_scale_iters=0), progress=False)
+    assert [m["iteration"] for m in _metrics(run)] == [2] and "stale" not in _metrics(run)[0]
     with pytest.raises(FileExistsError):
         train(tiny_dataset, run, _cfg(), progress=False)
+
+
+@pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
+                                 {"valid_threshold": 1.5}])
+def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
+    (key, value), = bad.items()
+    with pytest.raises(ValueError, match=f"{key} must"):
+        _cfg(**bad)
+    path = tmp_path / "c.yaml"
+    path.write_text(f"{key}: {value}\n")
+    with pytest.raises(ValueError, match=f"^{path}: training config: {key} must"):
+        TrainConfig.from_yaml(path)
 
 
 def test_single_object_skips_the_scale_network(tiny_dataset: Path, tmp_path: Path) -> None:
@@ -246,3 +264,14 @@ def test_resume_refuses_a_new_config_or_inputs(tmp_path) -> None:
     r = subprocess.run([sys.executable, "-m", "osn.cli", "train", str(tmp_path), "--out", str(tmp_path / "run"),
                         "--resume", "--inputs", str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 2 and "drop --config/--inputs" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_metrics_reader_skips_a_line_cut_by_a_kill(tmp_path: Path) -> None:
+    """The report and the CLI summary read metrics.jsonl after a kill mid-write: the cut line
+    (and anything that is not a record) is skipped instead of failing the whole evaluation."""
+    from osn.report import training_curve
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"iteration": 20, "psnr": 20.5}\n[1, 2]\n\n{"iteration": 40, "psnr": 21.0}\n{"iteration": 60, "ps')
+    assert [r["iteration"] for r in training_curve(path)] == [20, 40]
+    assert training_curve(tmp_path / "absent.jsonl") == []

@@ -619,6 +619,20 @@ def test_nearly_empty_valid_set_falls_back_with_a_warning(trained: Path, caplog)
     assert "using the best-scoring rest" in caplog.text
 
 
+def test_partial_fallback_never_repeats_a_kept_sample(trained: Path) -> None:
+    """When some candidates pass and the rest fall back, the fallback takes candidates that did
+    not pass: every returned vector is distinct (a repeated one would inflate best-of-N)."""
+    from osn.run import load_run
+
+    run = load_run(trained)
+    first = run.scores(np.random.default_rng(0).random((4096, run.inputs.num_objects - 1)))
+    threshold = float(np.sort(first)[-6])  # five of the first batch pass
+    s = sample_configurations(run, 50, threshold=threshold, max_draws=4096)
+    assert s.fell_back == 45 and len(s.s_free) == 50
+    assert len(np.unique(s.s_free, axis=0)) == 50
+    assert (s.score[:5] > threshold).all() and (s.score[5:] <= threshold).all()
+
+
 # --------------------------------------------------------------------------------------------
 # 4. The table in docs/robustness.md
 # --------------------------------------------------------------------------------------------
