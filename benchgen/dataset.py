@@ -292,7 +292,8 @@ def _check_exists(path: Path) -> None:
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
-    """Read an RGB PNG as ``(H, W, 3)`` uint8 (alpha dropped, grey expanded)."""
+    """Read an 8-bit RGB image (PNG, or JPEG for ``osn preprocess``) as ``(H, W, 3)`` uint8
+    (alpha dropped, grey expanded)."""
     import imageio.v3 as iio
 
     path = Path(path)
@@ -300,7 +301,7 @@ def read_rgb(path: str | Path) -> np.ndarray:
     try:
         img = iio.imread(path)
     except Exception as e:  # imageio raises many types for corrupt files
-        raise DatasetError(f"{path}: cannot read PNG ({e})") from None
+        raise DatasetError(f"{path}: cannot read the image ({e})") from None
     if img.dtype != np.uint8:
         raise DatasetError(f"{path}: expected 8-bit RGB, got {img.dtype}")
     if img.ndim == 2:
@@ -319,7 +320,7 @@ def read_ids(path: str | Path) -> np.ndarray:
     try:
         img = iio.imread(path)
     except Exception as e:
-        raise DatasetError(f"{path}: cannot read PNG ({e})") from None
+        raise DatasetError(f"{path}: cannot read the image ({e})") from None
     if img.ndim != 2 or img.dtype != np.uint8:
         raise DatasetError(f"{path}: instance ids must be a single-channel 8-bit PNG, got {img.shape} {img.dtype}")
     return img

@@ -29,6 +29,7 @@ import torch
 
 from benchgen import dataset as D
 from . import metrics as M
+from .inputs import InputsError
 from .run import TrainedRun
 from .scale_net import VALID_THRESHOLD
 
@@ -400,6 +401,9 @@ class EvalResult:
 
 def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print) -> EvalResult:
     """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset."""
+    problem = run.inputs.ground_truth_problem()
+    if problem:  # checked before any rendering: every metric below needs it
+        raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     gt = load_ground_truth(dataset_root, cfg.max_views)

@@ -638,7 +638,11 @@ class Evaluator:
         n = min(cfg.eval_pixels, st.T * st.H * st.W)
         self.flat = torch.randperm(st.T * st.H * st.W, generator=g)[:n].to(st.device)
         self.region = None
-        if trainer.net is not None and dataset_root is not None and (Path(dataset_root) / "valid_region.json").exists():
+        has_region = dataset_root is not None and (Path(dataset_root) / "valid_region.json").exists()
+        problem = st.inputs.ground_truth_problem() if has_region else None
+        if problem:
+            log.warning("valid-set accuracy is not measured during training: %s", problem)
+        if trainer.net is not None and has_region and not problem:
             self.region = D.load_valid_region(dataset_root)
             self.s_mc = torch.rand(cfg.iou_samples, st.K - 1, generator=g, dtype=torch.float64)
             sbar = full_sbar(self.s_mc, st.ranges.cpu(), st.anchor).numpy()

@@ -143,7 +143,7 @@ def test_validator_truncated_png_and_exr(ds):
     paths.rgb.write_bytes(paths.rgb.read_bytes()[:40])
     paths.depth.write_bytes(paths.depth.read_bytes()[:30])
     problems = D.validate(root)
-    _one(problems, str(paths.rgb), "cannot read PNG")
+    _one(problems, str(paths.rgb), "cannot read the image")
     _one(problems, str(paths.depth), "cannot read EXR")
 
 

@@ -127,6 +127,33 @@ def test_cli_failure_is_one_line(tmp_path):
     assert r.returncode == 2 and "--masks MASKS_DIR is required" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_video_folder_input_problems_are_named(tmp_path):
+    """Grey JPEG frames are read as RGB; masks without any object, and impossible intrinsics,
+    are one-line errors naming what is wrong."""
+    import imageio.v3 as iio
+
+    frames, masks = tmp_path / "frames", tmp_path / "masks"
+    frames.mkdir()
+    masks.mkdir()
+    rng = np.random.default_rng(0)
+    for t in range(3):
+        iio.imwrite(frames / f"{t}.jpg", (rng.random((16, 20)) * 255).astype(np.uint8))
+        iio.imwrite(masks / f"{t}.png", np.full((16, 20), 255, np.uint8))
+    with pytest.raises(P.InputsError, match=f"{masks}: the masks hold no object id"):
+        P.load_video(frames, masks)
+    iio.imwrite(masks / "1.png", np.zeros((16, 20), np.uint8))
+    images, ids, names = P.load_video(frames, masks)
+    assert images.shape == (3, 16, 20, 3) and names == ["0.jpg", "1.jpg", "2.jpg"]
+    with pytest.raises(P.InputsError, match="positive focal lengths"):
+        P.intrinsics_from_args("0,0,8,8", None, 20, 16)
+    with pytest.raises(P.InputsError, match="between 0 and 180"):
+        P.intrinsics_from_args(None, 180.0, 20, 16)
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks),
+                        "--intrinsics=-5,5,8,8", "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2 and "positive focal lengths" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_principal_grey_keeps_texture_that_luminance_loses():
     """A red/blue pattern of equal luminance is blank to SIFT in luminance, not on its colour axis."""
     rng = np.random.default_rng(0)

@@ -171,7 +171,7 @@ def _break_dataset(root: Path, case: str) -> tuple[Path, str]:
     paths = D.frame_paths(root, scene.train_frames[0].name)
     if case == "corrupt_png":
         paths.rgb.write_bytes(paths.rgb.read_bytes()[:40])
-        return paths.rgb, "cannot read PNG"
+        return paths.rgb, "cannot read the image"
     if case == "truncated_exr":
         paths.depth.write_bytes(paths.depth.read_bytes()[:30])
         return paths.depth, "cannot read EXR"
@@ -294,7 +294,7 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
     view = D.frame_paths(data, sorted(scene.test_frames, key=lambda f: (f.time_index, f.view))[0].name, 1).rgb
     view.write_bytes(view.read_bytes()[:50])
     jobs["evaluate_corrupt_test_view"] = (("osn", "evaluate", trained, "--data", data, "--out", base / "report", *EVAL_ARGS),
-                                          view, "cannot read PNG")
+                                          view, "cannot read the image")
 
     jobs["train_onto_existing_run"] = (("osn", "train", tiny_dataset, "--out", trained), trained, "already holds a run; pass --resume")
 
@@ -631,6 +631,38 @@ def test_partial_fallback_never_repeats_a_kept_sample(trained: Path) -> None:
     assert s.fell_back == 45 and len(s.s_free) == 50
     assert len(np.unique(s.s_free, axis=0)) == 50
     assert (s.score[:5] > threshold).all() and (s.score[5:] <= threshold).all()
+
+
+def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(trained: Path, tiny_dataset: Path, caplog) -> None:
+    """An SfM object whose alignment to ground truth failed has no unit: training still runs
+    (without valid-set metrics, saying why), and evaluation stops before rendering anything
+    with a message naming the object, instead of failing after all the work."""
+    import dataclasses
+
+    from osn.evaluate import EvalConfig, evaluate
+    from osn.run import load_run
+    from osn.train import Evaluator, TrainConfig, Trainer
+
+    run = load_run(trained)
+    original = run.inputs
+    assert original.ground_truth_problem() is None
+    objects = list(run.inputs.objects)
+    objects[1] = dataclasses.replace(objects[1], unit_to_world=None)
+    run.inputs = dataclasses.replace(run.inputs, objects=objects)
+    problem = run.inputs.ground_truth_problem()
+    assert problem is not None and f"{objects[1].id} ({objects[1].name})" in problem
+    samples = sample_configurations(run, 2)
+    t0 = time.perf_counter()
+    with pytest.raises(InputsError, match=f"{tiny_dataset}: cannot evaluate against ground truth: object"):
+        evaluate(run, tiny_dataset, samples, EvalConfig(max_views=1, lpips=False), echo=lambda _: None)
+    assert time.perf_counter() - t0 < 1.0
+    cfg = TrainConfig.from_yaml(trained / "config.yaml")
+    with caplog.at_level(logging.WARNING):
+        ev = Evaluator(Trainer(run.inputs, cfg, torch.device("cpu")), tiny_dataset)
+    assert ev.region is None and "valid-set accuracy is not measured" in caplog.text
+    assert "iou" not in ev() and np.isfinite(ev()["psnr"])
+    no_rig = dataclasses.replace(original, world_to_anchor=None)
+    assert "test cameras cannot be placed" in no_rig.ground_truth_problem()
 
 
 # --------------------------------------------------------------------------------------------
