@@ -412,6 +412,15 @@ def _matrix(x: Any, shape: tuple[int, ...], what: str, path: Path) -> np.ndarray
 
 def scene_from_json(d: dict[str, Any], path: Path) -> Scene:
     """Parse and check a manifest dict; raise ``DatasetError`` naming ``path`` and the problem."""
+    try:
+        return _scene_from_json(d, path)
+    except DatasetError as e:
+        raise DatasetError(str(e) if str(path) in str(e) else f"{path}: {e}") from None
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError) as e:  # a field of the wrong type
+        raise DatasetError(f"{path}: malformed manifest ({type(e).__name__}: {e})") from None
+
+
+def _scene_from_json(d: dict[str, Any], path: Path) -> Scene:
     fmt = d.get("format") if isinstance(d, dict) else None
     if fmt != FORMAT_NAME:
         raise DatasetError(f"{path}: not an {FORMAT_NAME} manifest (format={fmt!r})")

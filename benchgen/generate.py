@@ -33,7 +33,7 @@ from .cliutil import UserError
 from .configs import choose_configurations
 from .geometry import BuiltScene, build_scene
 from .plausibility import PlausibilityChecker, check_authored_scene, room_scale_limits
-from .spec import SceneSpec, dump_spec, spec_from_dict
+from .spec import SceneSpec, dump_spec, read_spec_yaml, spec_from_dict
 from .validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
 from .verify import compare_training, summarise, test_difference, thresholds
 
@@ -272,6 +272,8 @@ class Summary:
 
 
 def _check_output(root: Path, spec_text: str) -> None:
+    if root.exists() and not root.is_dir():
+        raise UserError(f"{root}: exists and is not a directory; choose another --out")
     existing = root / "spec.yaml"
     if existing.exists() and existing.read_text() != spec_text:
         raise UserError(f"{root} holds a dataset generated from a different spec or options; choose another --out")
@@ -295,7 +297,7 @@ def prepare(spec: SceneSpec) -> tuple[BuiltScene, np.ndarray]:
     """Build the scene and run every check that needs no rendering; returns room scale limits."""
     try:
         built = build_scene(spec)
-    except ValueError as e:
+    except (ValueError, NotImplementedError) as e:  # trimesh: unknown mesh format
         raise UserError(f"{spec.source}: {e}") from None
     check_authored_scene(built)
     return built, room_scale_limits(built)
@@ -398,10 +400,8 @@ def verify_dataset(root: str | Path, workers: int = 1, executor: str = "local", 
     spec_path = root / "spec.yaml"
     if not spec_path.exists():
         raise UserError(f"{spec_path}: missing; verify needs the spec the dataset was generated from")
-    import yaml
-
-    spec = spec_from_dict(yaml.safe_load(spec_path.read_text()), str(spec_path))
-    built = build_scene(spec)
+    spec = spec_from_dict(read_spec_yaml(spec_path), str(spec_path))
+    built, _ = prepare(spec)
     scene = D.load_scene(root)
     configs = np.stack([c.scales for c in D.load_configurations(root, scene)])
     summary = Summary(str(root), workers=workers, names=[g.name for g in built.objects])

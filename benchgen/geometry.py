@@ -138,7 +138,10 @@ def object_geometry(o: ObjectSpec, seed: int) -> ObjectGeometry:
     if o.parts:
         mesh = trimesh.util.concatenate([part_mesh(p) for p in o.parts])
     else:
-        loaded = trimesh.load(o.mesh, force="mesh")
+        try:
+            loaded = trimesh.load(o.mesh, force="mesh")
+        except Exception as e:  # trimesh raises many types for unknown or broken files
+            raise ValueError(f"{o.mesh}: cannot load the mesh ({type(e).__name__}: {e})") from None
         if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
             raise ValueError(f"{o.mesh}: trimesh found no triangles")
         mesh = loaded.copy()

@@ -90,9 +90,18 @@ class PlausibilityChecker:
 
 
 def check_authored_scene(built: BuiltScene) -> None:
-    """Reject a spec whose own scene (all scales 1) is implausible, before any rendering."""
+    """Reject a spec whose own scene (all scales 1) is implausible, before any rendering.
+
+    Test cameras must be inside the room too: one outside sees only the room's outer faces, the
+    same in every configuration, and would make the novel views meaningless.
+    """
     limits = room_scale_limits(built)
     src = built.spec.source
+    lo, hi = built.room_box
+    for f in built.scene.test_frames:
+        c = f.camera_to_world[:3, 3]
+        if np.any(c <= lo - ROOM_TOLERANCE) or np.any(c >= hi + ROOM_TOLERANCE):
+            raise SpecError(f"{src}: rig: the test camera of frame {f.name} is outside the room")
     for k in range(1, len(built.objects)):
         if limits[k] < 1.0:
             raise SpecError(f"{src}: objects: {built.objects[k].name!r} pokes out of the room during its motion")

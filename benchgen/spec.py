@@ -9,6 +9,7 @@ raises ``SpecError`` with one line naming the file and the field. See docs/bench
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -181,6 +182,8 @@ class _Ctx:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.fail(where, f"expected a number, got {v!r}")
         v = float(v)
+        if not math.isfinite(v):
+            raise self.fail(where, f"must be a finite number, got {v}")
         if lo is not None and (v < lo or (strict_lo and v == lo)):
             raise self.fail(where, f"must be {'>' if strict_lo else '>='} {lo}, got {v}")
         if hi is not None and v > hi:
@@ -312,8 +315,8 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
     )
     if rig.train_path not in TRAIN_PATHS:
         raise c.fail("rig.train_path", f"unknown path {rig.train_path!r} (expected one of {', '.join(TRAIN_PATHS)})")
-    if rig.views * rig.times < 2:
-        raise c.fail("rig", "needs at least 2 (view, time) pairs so that there is a test view")
+    if rig.views < 2:  # the training video takes one view per time; test views need another
+        raise c.fail("rig.views", f"needs at least 2 camera positions so that there are test views, got {rig.views}")
     res = d.get("resolution", [128, 128])
     res = [res, res] if isinstance(res, int) and not isinstance(res, bool) else res
     if not isinstance(res, list) or len(res) != 2:
@@ -344,13 +347,17 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
 def load_spec(path: str | Path) -> SceneSpec:
     """Load and check a spec file (relative mesh paths are resolved against its directory)."""
     path = Path(path)
+    return spec_from_dict(read_spec_yaml(path), str(path), path.parent)
+
+
+def read_spec_yaml(path: Path) -> Any:
+    """The parsed YAML of a spec file; ``SpecError`` naming the file if missing or not YAML."""
     if not path.is_file():
         raise SpecError(f"{path}: spec file not found")
     try:
-        data = yaml.safe_load(path.read_text())
+        return yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise SpecError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    return spec_from_dict(data, str(path), path.parent)
 
 
 def preset_names() -> list[str]:

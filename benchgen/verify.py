@@ -115,8 +115,13 @@ def summarise(index: int, scales: np.ndarray, train: list[tuple[str, dict[str, A
         )
     if bad_ids:
         failures.append(f"training frame {bad_ids[0]}: instance ids differ from the training video")
-    frac = differ / seen if seen else 1.0
-    if frac < TEST_MIN_DIFFERING_FRACTION:
+    blank = [name for name, s in train if s.get("interior_fraction", 1.0) == 0.0]
+    if blank:  # every preset's room surrounds the camera: a frame without object pixels is broken
+        failures.append(f"training frame {blank[0]}: shows no object at all (blank render)")
+    frac = differ / seen if seen else 0.0
+    if index != 0 and test and not seen:  # test views were rendered, none shows a rescaled object
+        failures.append("no test view shows an object whose scale differs from configuration 000")
+    elif index != 0 and seen and frac < TEST_MIN_DIFFERING_FRACTION:
         worst_test = min((t for t in test if t[1]), key=lambda t: t[2] / t[1])
         failures.append(
             f"test frame {worst_test[0]}: only {100 * frac:.1f}% of pixels showing a rescaled object differ from configuration 000"
@@ -130,14 +135,21 @@ def summarise(index: int, scales: np.ndarray, train: list[tuple[str, dict[str, A
         "ids_identical": not bad_ids,
         "min_interior_fraction": min(s.get("interior_fraction", 1.0) for _, s in train),
         "test_pixels_with_rescaled_objects": seen,
-        "test_differing_fraction": frac if index != 0 else None,
+        "test_differing_fraction": frac if index != 0 and seen else None,
         "passed": not failures,
         "failures": failures,
     }
 
 
+#: Bumped when a verdict rule changes (2: blank renders and test views seeing no rescaled
+#: object fail), so verdicts cached under the old rules are recomputed.
+VERDICT_RULES = 2
+
+
 def thresholds() -> dict[str, float]:
+    """Everything a verdict depends on besides the renders (stored with cached verdicts)."""
     return {
+        "verdict_rules": VERDICT_RULES,
         "train_max_interior_diff": TRAIN_MAX_INTERIOR_DIFF,
         "train_max_differing_fraction": TRAIN_MAX_DIFFERING_FRACTION,
         "train_pixel_tolerance": TRAIN_PIXEL_TOLERANCE,

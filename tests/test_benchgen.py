@@ -121,6 +121,21 @@ def test_gnome_house_invariance_on_reduced_rig(tmp_path):
         assert verdict["max_interior_diff"] < 5e-5 and verdict["min_interior_fraction"] > 0.7
 
 
+def test_verdict_fails_blank_renders_and_test_views_that_see_no_rescaled_object():
+    """A configuration passes only if its renders show objects and its test views see a
+    rescaled object (a NaN camera once rendered every pixel empty and 'passed')."""
+    ok = {"max_interior_diff": 0.0, "differing_fraction": 0.0, "ids_identical": True, "interior_fraction": 0.8}
+    blank = dict(ok, interior_fraction=0.0)
+    assert summarise(1, np.ones(2), [("t0", ok)], [("v1", 100, 99)])["passed"]
+    v = summarise(1, np.ones(2), [("t0", ok), ("t1", blank)], [("v1", 100, 99)])
+    assert not v["passed"] and "training frame t1: shows no object at all" in v["failures"][0]
+    v = summarise(1, np.ones(2), [("t0", ok)], [("v1", 0, 0), ("v2", 0, 0)])
+    assert not v["passed"] and "no test view shows an object whose scale differs" in v["failures"][0]
+    v = summarise(1, np.ones(2), [("t0", ok)], [("v1", 100, 1)])
+    assert not v["passed"] and "test frame v1: only 1.0%" in v["failures"][0]
+    assert summarise(0, np.ones(2), [("t0", ok)], [("v1", 0, 0)])["passed"]  # the reference itself
+
+
 def test_interior_mask_excludes_borders_silhouettes_and_grazing_hits():
     ids = np.zeros((6, 7), dtype=np.uint8)
     ids[:, 5:] = 1
@@ -184,9 +199,21 @@ def test_configurations_are_plausible_and_spread(tiny):
     assert np.all(cfgs <= limits + 1e-12)
     x = np.log(cfgs)
     assert min(np.linalg.norm(x[i] - x[j]) for i in range(3) for j in range(i)) > 0.3
-    too_big = np.ones(len(limits))
-    too_big[1] = limits[1] * 1.01
-    assert room_scale_limits(built)[1] == limits[1] and too_big[1] > limits[1]
+    assert room_scale_limits(built)[1] == limits[1]
+    # The limit is tight: 1% above it a vertex of object 1 leaves the room at some time, 1% below none does.
+    lo, hi = built.room_box
+
+    def leaves_room(s1: float) -> bool:
+        scales = np.ones(len(limits))
+        scales[1] = s1
+        for t in range(len(built.scene.timestamps)):
+            M = built.poses(t, scales)[1]
+            v = built.objects[1].mesh.vertices @ M[:3, :3].T + M[:3, 3]
+            if np.any(v < lo - 1e-9) or np.any(v > hi + 1e-9):
+                return True
+        return False
+
+    assert leaves_room(limits[1] * 1.01) and not leaves_room(limits[1] * 0.99)
 
 
 def test_deterministic_and_resumable(tiny, tmp_path):
@@ -228,6 +255,10 @@ BAD_SPECS = [
     (lambda d: d["objects"][0]["motion"][0].update(location=[0.0, 0.0, 2.4]), "'ball' pokes out of the room"),
     (lambda d: d.update(margin=3.0), "no room for a log margin of 3.0"),
     (lambda d: d.update(colour=1), "colour: unknown field"),
+    (lambda d: d["rig"].update(height=float("nan")), "rig.height: must be a finite number, got nan"),
+    (lambda d: d.update(margin=float("inf")), "margin: must be a finite number"),
+    (lambda d: d["rig"].update(views=1), "rig.views: needs at least 2 camera positions"),
+    (lambda d: d["rig"].update(views=4, times=2, arc=[0, 180], radius=1.9), "test camera of frame v03_t00 is outside the room"),
 ]
 
 
@@ -242,6 +273,32 @@ def test_bad_specs_are_rejected_before_rendering(tmp_path, capsys, mutate, messa
     err = capsys.readouterr().err
     assert message in err and str(path) in err and len(err.strip().splitlines()) == 1
     assert not (out / "configs").exists()
+
+
+def test_output_and_input_problems_are_one_line(tmp_path, capsys):
+    """--out naming a file, a dataset whose spec.yaml is not YAML, a mesh trimesh cannot read:
+    each is one line naming the file, exit 2, nothing rendered."""
+    not_dir = tmp_path / "file"
+    not_dir.write_text("x")
+    assert cli_main(["generate", "--preset", "tiny", "--out", str(not_dir), "--quiet"]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "spec.yaml").write_text("rig: [unclosed")
+    assert cli_main(["verify", str(ds)]) == 2
+    err = capsys.readouterr().err
+    assert f"{ds / 'spec.yaml'}: not valid YAML" in err and len(err.strip().splitlines()) == 1
+    d = yaml.safe_load((PRESET_DIR / "tiny.yaml").read_text())
+    mesh = tmp_path / "thing.xyz123"
+    mesh.write_text("not a mesh")
+    d["objects"][0].pop("parts")
+    d["objects"][0]["mesh"] = str(mesh)
+    spec = tmp_path / "mesh.yaml"
+    spec.write_text(yaml.safe_dump(d))
+    assert cli_main(["generate", "--spec", str(spec), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{mesh}: cannot load the mesh" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "configs").exists()
 
 
 def test_spec_round_trip_and_overrides():

@@ -170,6 +170,20 @@ def test_validator_not_a_dataset(tmp_path):
     _one(D.validate(tmp_path), "scene.json", "not valid JSON")
 
 
+@pytest.mark.parametrize("mutate", [
+    lambda d: d["image"].update(width=None),
+    lambda d: d.update(timestamps=5),
+    lambda d: d["intrinsics"].update(fx="wide"),
+])
+def test_manifest_fields_of_the_wrong_type_are_named(ds, mutate):
+    """A field of the wrong type is one problem naming scene.json, not a TypeError traceback."""
+    root, _ = ds
+    d = json.loads((root / "scene.json").read_text())
+    mutate(d)
+    (root / "scene.json").write_text(json.dumps(d))
+    _one(D.validate(root), "scene.json", "malformed manifest")
+
+
 def test_dataset_module_imports_neither_bpy_nor_torch():
     code = "import sys, benchgen.dataset, benchgen.cameras, benchgen.validity; print('bpy' in sys.modules, 'torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
