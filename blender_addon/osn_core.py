@@ -273,16 +273,74 @@ def sha256_file(path: str) -> str:
     return h.hexdigest()
 
 
-def _get(d: dict, key: str, where: str) -> Any:
+def _show(value: Any, limit: int = 60) -> str:
+    """A short one-line ``repr`` of a manifest value for an error message."""
+    s = " ".join(repr(value).split())
+    return s if len(s) <= limit else s[: limit - 3] + "..."
+
+
+def _get(d: Any, key: str, where: str) -> Any:
     if not isinstance(d, dict) or key not in d:
         raise ExportFormatError(f"{where}: missing key {key!r}")
     return d[key]
 
 
+def _dict(value: Any, where: str, what: str) -> dict:
+    if not isinstance(value, dict):
+        raise ExportFormatError(f"{where}: {what} must be a JSON object, got {_show(value)}")
+    return value
+
+
+def _list(value: Any, where: str, what: str) -> list:
+    if not isinstance(value, list):
+        raise ExportFormatError(f"{where}: {what} must be a list, got {_show(value)}")
+    return value
+
+
+def _str(value: Any, where: str, what: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise ExportFormatError(f"{where}: {what} must be a non-empty string, got {_show(value)}")
+    return value
+
+
+def _int(value: Any, where: str, what: str, minimum: int | None = None) -> int:
+    """A JSON integer (an integral float is accepted), optionally ``>= minimum``; bools are refused."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or (minimum is not None and value < minimum):
+        bound = "" if minimum is None else f" >= {minimum}"
+        raise ExportFormatError(f"{where}: {what} must be an integer{bound}, got {_show(value)}")
+    return value
+
+
+def _numbers(value: Any, where: str, what: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Finite JSON numbers of exactly ``shape`` (``None`` = any length) as float64."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nesting
+        a = None
+    if len(shape) == 0:
+        want = "a number"
+    elif len(shape) == 1:
+        want = "a list of numbers" if shape[0] is None else f"a list of {shape[0]} numbers"
+    else:
+        want = "an array of " + "x".join("N" if n is None else str(n) for n in shape) + " numbers"
+    if (a is None or a.dtype.kind not in "iuf" or a.ndim != len(shape)
+            or any(n is not None and n != m for n, m in zip(shape, a.shape))):
+        raise ExportFormatError(f"{where}: {what} must be {want}, got {_show(value)}")
+    a = a.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ExportFormatError(f"{where}: {what} has non-finite values")
+    return a
+
+
 def _array(arrays: dict[str, np.ndarray], key: str, shape: tuple[int | None, ...], where: str) -> np.ndarray:
     if key not in arrays:
         raise ExportFormatError(f"{where}: missing array {key!r}")
-    a = np.asarray(arrays[key], dtype=np.float64)
+    a = np.asarray(arrays[key])
+    if a.dtype.kind not in "iuf":
+        raise ExportFormatError(f"{where}: array {key!r} has dtype {a.dtype}, expected numbers")
+    a = a.astype(np.float64)
     if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
         raise ExportFormatError(f"{where}: array {key!r} has shape {a.shape}, expected {shape}")
     if not np.all(np.isfinite(a)):
@@ -313,15 +371,15 @@ def read_ply(path: str) -> dict[str, np.ndarray]:
         raise ExportFormatError(f"{path}: only binary little-endian PLY is supported")
     types = {"float": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
     elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    for line in header:
-        w = line.split()
-        if w[:1] == ["element"]:
-            elements.append((w[1], int(w[2]), []))
-        elif w[:1] == ["property"] and elements:
-            elements[-1][2].append((w[-1], " ".join(w[1:-1])))
     off = end + len(b"end_header\n")
     out: dict[str, np.ndarray] = {}
     try:
+        for line in header:
+            w = line.split()
+            if w[:1] == ["element"]:
+                elements.append((w[1], int(w[2]), []))
+            elif w[:1] == ["property"] and elements:
+                elements[-1][2].append((w[-1], " ".join(w[1:-1])))
         for name, count, props in elements:
             if name == "vertex":
                 dt = np.dtype([(p, types[t]) for p, t in props])
@@ -343,10 +401,10 @@ def read_ply(path: str) -> dict[str, np.ndarray]:
                 out["faces"] = f["i"].astype(np.int64)
             else:
                 raise ExportFormatError(f"{path}: unexpected PLY element {name!r}")
-    except (ValueError, KeyError) as e:
+    except (ValueError, KeyError, IndexError, TypeError) as e:
         if isinstance(e, ExportFormatError):
             raise
-        raise ExportFormatError(f"{path}: truncated or malformed PLY ({e})") from None
+        raise ExportFormatError(f"{path}: truncated or malformed PLY ({' '.join(str(e).split())})") from None
     if "vertices" not in out or "faces" not in out:
         raise ExportFormatError(f"{path}: PLY lacks vertices or faces")
     if len(out["faces"]) and (out["faces"].min() < 0 or out["faces"].max() >= len(out["vertices"])):
@@ -358,8 +416,10 @@ def read_export(path: str, load_meshes: bool = True) -> ExportData:
     """Read and validate an export directory (or its manifest file).
 
     Checks the format and version, that every file the manifest names exists with the recorded
-    size and sha256, and every array's shape and finiteness, before anything is returned: a
-    caller that builds a scene from the result never sees a half-valid export.
+    size and sha256, every manifest field's type and shape, and every array's shape and
+    finiteness, before anything is returned: a caller that builds a scene from the result never
+    sees a half-valid export. Every problem raises ``ExportFormatError`` (or ``OSError`` for an
+    unreadable file) with a one-line message naming the file and the field.
     """
     root = os.path.dirname(path) if os.path.isfile(path) else path
     mpath = os.path.join(root, MANIFEST_NAME)
@@ -377,47 +437,79 @@ def read_export(path: str, load_meshes: bool = True) -> ExportData:
             f"{mpath}: export version {m.get('version')!r}, this reader supports version {EXPORT_VERSION}; "
             "re-export with a matching osn or update the add-on"
         )
-    for entry in _get(m, "files", mpath):
-        rel = _get(entry, "path", mpath)
-        p = os.path.join(root, rel)
+    try:
+        return _read_manifest(root, mpath, m, load_meshes)
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:
+        # The checks above and below name the field; this only keeps a case they missed from
+        # reaching the user as a traceback.
+        if isinstance(e, ExportFormatError):
+            raise
+        raise ExportFormatError(f"{mpath}: malformed export ({type(e).__name__}: {' '.join(str(e).split())})") from None
+
+
+def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) -> ExportData:
+    listed: set[str] = set()
+    for j, entry in enumerate(_list(_get(m, "files", mpath), mpath, "'files'")):
+        what = f"files[{j}]"
+        _dict(entry, mpath, what)
+        rel = _str(_get(entry, "path", f"{mpath}: {what}"), mpath, f"{what}.path")
+        size = _int(_get(entry, "bytes", f"{mpath}: {what}"), mpath, f"{what}.bytes", minimum=0)
+        digest = _str(_get(entry, "sha256", f"{mpath}: {what}"), mpath, f"{what}.sha256")
         if os.path.isabs(rel) or ".." in rel.replace("\\", "/").split("/"):
             raise ExportFormatError(f"{mpath}: file path {rel!r} leaves the export directory")
+        p = os.path.join(root, rel)
         if not os.path.isfile(p):
             raise ExportFormatError(f"{p}: missing file named in the manifest")
-        if os.path.getsize(p) != _get(entry, "bytes", mpath) or sha256_file(p) != _get(entry, "sha256", mpath):
+        if os.path.getsize(p) != size or sha256_file(p) != digest:
             raise ExportFormatError(f"{p}: corrupt file (size or sha256 differs from the manifest)")
-    listed = {e["path"] for e in m["files"]}
+        listed.add(rel)
 
-    def named(rel: str | None, what: str) -> str:
-        if rel not in listed:
-            raise ExportFormatError(f"{mpath}: {what} {rel!r} is not among the manifest's files")
+    def named(rel: Any, what: str) -> str:
+        if not isinstance(rel, str) or rel not in listed:
+            raise ExportFormatError(f"{mpath}: {what} {_show(rel)} is not among the manifest's files")
         return os.path.join(root, rel)
 
     arrays = _load_npz(named(_get(m, "arrays", mpath), "arrays file"))
-    T = len(_get(m, "timestamps", mpath))
-    cam = _get(m, "camera", mpath)
+    timestamps = _numbers(_get(m, "timestamps", mpath), mpath, "'timestamps'", (None,))
+    T = len(timestamps)
+    if T == 0:
+        raise ExportFormatError(f"{mpath}: 'timestamps' is empty")
+    cam = _dict(_get(m, "camera", mpath), mpath, "'camera'")
+    width = _int(_get(cam, "width", f"{mpath}: camera"), mpath, "camera.width", minimum=1)
+    height = _int(_get(cam, "height", f"{mpath}: camera"), mpath, "camera.height", minimum=1)
+    K = _numbers(_get(cam, "K", f"{mpath}: camera"), mpath, "camera.K", (3, 3))
     c2s = _array(arrays, "camera_to_scene", (T, 4, 4), mpath)
     test = _array(arrays, "test_cameras", (None, T, 4, 4), mpath) if "test_cameras" in arrays else None
-    objects = []
-    for i, o in enumerate(_get(m, "objects", mpath)):
+    objects: list[ExportObjectData] = []
+    for i, o in enumerate(_list(_get(m, "objects", mpath), mpath, "'objects'")):
         where = f"{mpath}: object {i}"
-        oid = int(_get(o, "id", where))
-        frames = np.asarray(arrays.get(f"obj{oid}_frames", np.zeros(0)), dtype=np.int64)
-        if frames.ndim != 1 or not len(frames) or frames.min() < 0 or frames.max() >= T:
-            raise ExportFormatError(f"{where}: frames must be a non-empty subset of 0..{T - 1}")
-        lo, hi = (float(x) for x in _get(o, "scale_range", where))
-        vlo, vhi = (float(x) for x in _get(o, "valid_interval", where))
+        _dict(o, mpath, f"object {i}")
+        oid = _int(_get(o, "id", where), where, "id", minimum=0)
+        if any(prev.id == oid for prev in objects):
+            raise ExportFormatError(f"{where}: id {oid} is used by another object")
+        frames = np.asarray(arrays.get(f"obj{oid}_frames", np.zeros(0, np.int64)))
+        if frames.dtype.kind not in "iu" or frames.ndim != 1 or not len(frames) or frames.min() < 0 or frames.max() >= T:
+            raise ExportFormatError(f"{where}: frames must be a non-empty integer subset of 0..{T - 1}")
+        frames = frames.astype(np.int64)
+        lo, hi = _numbers(_get(o, "scale_range", where), where, "scale_range", (2,))
+        vlo, vhi = _numbers(_get(o, "valid_interval", where), where, "valid_interval", (2,))
         if not (0 < lo < hi and 0 < vlo <= vhi):
             raise ExportFormatError(f"{where}: scale_range [{lo}, {hi}] or valid_interval [{vlo}, {vhi}] is empty or inverted")
+        grid_shape = _list(_get(o, "grid_shape", where), where, "grid_shape")
+        if len(grid_shape) != 3:
+            raise ExportFormatError(f"{where}: grid_shape must be 3 integers [D, H, W], got {_show(grid_shape)}")
         mesh_rel = o.get("mesh")
+        is_anchor = _get(o, "is_anchor", where)
+        if not isinstance(is_anchor, bool):
+            raise ExportFormatError(f"{where}: is_anchor must be true or false, got {_show(is_anchor)}")
         obj = ExportObjectData(
             id=oid,
-            name=str(_get(o, "name", where)),
-            is_anchor=bool(_get(o, "is_anchor", where)),
-            bbox=np.asarray(_get(o, "bbox", where), dtype=np.float64).reshape(2, 3),
-            grid_shape=tuple(int(x) for x in _get(o, "grid_shape", where)),  # type: ignore[arg-type]
-            scale_range=(lo, hi),
-            valid_interval=(vlo, vhi),
+            name=_str(_get(o, "name", where), where, "name"),
+            is_anchor=is_anchor,
+            bbox=_numbers(_get(o, "bbox", where), where, "bbox", (2, 3)),
+            grid_shape=tuple(_int(n, where, "grid_shape", minimum=1) for n in grid_shape),  # type: ignore[arg-type]
+            scale_range=(float(lo), float(hi)),
+            valid_interval=(float(vlo), float(vhi)),
             frames=frames,
             object_to_scene=_array(arrays, f"obj{oid}_object_to_scene", (len(frames), 4, 4), where),
             volume_path=named(_get(o, "volume", where), "volume"),
@@ -433,12 +525,16 @@ def read_export(path: str, load_meshes: bool = True) -> ExportData:
     layers = None
     net_kw: dict[str, Any] = {}
     if net is not None:
-        z = _load_npz(named(_get(net, "file", mpath), "scale network file"))
-        n = int(_get(net, "layers", mpath))
+        where = f"{mpath}: scale_network"
+        _dict(net, mpath, "'scale_network'")
+        z = _load_npz(named(_get(net, "file", where), "scale network file"))
+        n = _int(_get(net, "layers", where), where, "layers", minimum=1)
         try:
             layers = [(z[f"W{i}"].astype(np.float64), z[f"b{i}"].astype(np.float64)) for i in range(n)]
         except KeyError as e:
             raise ExportFormatError(f"{mpath}: scale network file lacks {e}") from None
+        except (TypeError, ValueError):
+            raise ExportFormatError(f"{mpath}: scale network file holds non-numeric arrays") from None
         width_in = len(objects) - 1
         for i, (W, b) in enumerate(layers):
             if W.ndim != 2 or b.shape != (W.shape[0],) or W.shape[1] != width_in or not np.all(np.isfinite(W)):
@@ -447,21 +543,21 @@ def read_export(path: str, load_meshes: bool = True) -> ExportData:
         if width_in != 1:
             raise ExportFormatError(f"{mpath}: scale network output width {width_in}, expected 1")
         net_kw = {
-            "net_hidden": str(_get(net, "hidden_activation", mpath)),
-            "net_output": str(_get(net, "output_activation", mpath)),
-            "net_threshold": float(_get(net, "threshold", mpath)),
+            "net_hidden": _str(_get(net, "hidden_activation", where), where, "hidden_activation"),
+            "net_output": _str(_get(net, "output_activation", where), where, "output_activation"),
+            "net_threshold": float(_numbers(_get(net, "threshold", where), where, "threshold", ())),
         }
-        for act in (net_kw["net_hidden"], net_kw["net_output"]):
-            if act not in ACTIVATIONS:
-                raise ExportFormatError(f"{mpath}: unknown activation {act!r}")
+        for key in ("net_hidden", "net_output"):
+            if net_kw[key] not in ACTIVATIONS:
+                raise ExportFormatError(f"{where}: unknown activation {net_kw[key]!r} (expected one of {ACTIVATIONS})")
     samples = _array(arrays, "samples_sbar", (None, len(objects)), mpath) if "samples_sbar" in arrays else None
     return ExportData(
         root=root,
         manifest=m,
-        width=int(_get(cam, "width", mpath)),
-        height=int(_get(cam, "height", mpath)),
-        K=np.asarray(_get(cam, "K", mpath), dtype=np.float64).reshape(3, 3),
-        timestamps=np.asarray(m["timestamps"], dtype=np.float64),
+        width=width,
+        height=height,
+        K=K,
+        timestamps=timestamps,
         camera_to_scene=c2s,
         test_cameras=test,
         objects=objects,

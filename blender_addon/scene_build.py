@@ -33,15 +33,21 @@ _INTERP_LINEAR = 1  # keyframe interpolation enum index: CONSTANT 0, LINEAR 1, B
 # --------------------------------------------------------------------------------------------
 
 
-def _fcurve_collection(obj: bpy.types.Object, create: bool) -> Any:
-    """The F-curve collection animating ``obj`` (its slot's channelbag on 4.4+, the action on 4.2)."""
+def _fcurve_collection(obj: bpy.types.Object, create: bool, made: _Created | None = None) -> Any:
+    """The F-curve collection animating ``obj`` (its slot's channelbag on 4.4+, the action on 4.2).
+
+    A new action is recorded in ``made`` (when given) so a failed import removes it again.
+    """
     ad = obj.animation_data or (obj.animation_data_create() if create else None)
     if ad is None:
         return None
     if ad.action is None:
         if not create:
             return None
-        ad.action = bpy.data.actions.new(f"{obj.name} OSN")
+        action = bpy.data.actions.new(f"{obj.name} OSN")
+        if made is not None:
+            made.add(action)
+        ad.action = action
     action = ad.action
     if not LAYERED_ACTIONS:
         return action.fcurves
@@ -52,11 +58,12 @@ def _fcurve_collection(obj: bpy.types.Object, create: bool) -> Any:
     return strip.channelbag(ad.action_slot, ensure=True).fcurves
 
 
-def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray) -> None:
+def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray, made: _Created | None = None) -> None:
     """Key ``obj``'s location, quaternion and scale to ``matrices (F, 4, 4)`` at Blender ``frames``.
 
     Writes whole F-curves with ``foreach_set`` (one call per channel, ~40x faster than
     ``keyframe_insert``); existing curves are overwritten in place, so re-keying keeps the action.
+    An action created here is recorded in ``made`` (the import's rollback record) when given.
     """
     obj.rotation_mode = "QUATERNION"
     loc, quat, scl = np.zeros((len(frames), 3)), np.zeros((len(frames), 4)), np.zeros((len(frames), 3))
@@ -67,7 +74,7 @@ def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray
             q.make_compatible(prev)  # shortest-path interpolation between keys
         prev = q
         loc[i], quat[i], scl[i] = t, q, s
-    fcurves = _fcurve_collection(obj, create=True)
+    fcurves = _fcurve_collection(obj, create=True, made=made)
     f = np.asarray(frames, dtype=np.float64)
     for path, values in (("location", loc), ("rotation_quaternion", quat), ("scale", scl)):
         for idx in range(values.shape[1]):
@@ -213,7 +220,8 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
     made = _Created()
     scene = context.scene
     try:
-        title = data.manifest.get("meta", {}).get("name") or "export"
+        meta = data.manifest.get("meta")
+        title = (meta.get("name") if isinstance(meta, dict) else None) or "export"
         coll = made.add(bpy.data.collections.new(f"OSN {title}"))
         coll[P_MANIFEST] = json.dumps(data.manifest)
         centres = data.camera_to_scene[:, :3, 3]
@@ -255,8 +263,8 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
             for part in parts:
                 coll.objects.link(part)
                 part.parent = empty
-            key_matrices(empty, o.frames + 1.0, o.object_to_scene)
-            _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)))
+            key_matrices(empty, o.frames + 1.0, o.object_to_scene, made)
+            _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)
         cams = [("OSN training camera", data.camera_to_scene)]
         if data.test_cameras is not None:
             cams += [(f"OSN test camera {v}", c) for v, c in enumerate(data.test_cameras)]
@@ -264,7 +272,7 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
         for name, c2s in cams:
             cobj = made.add(bpy.data.objects.new(name, made.add(_camera_data(name, data))))
             coll.objects.link(cobj)
-            key_matrices(cobj, frames_all, core.blender_camera_matrices(c2s))
+            key_matrices(cobj, frames_all, core.blender_camera_matrices(c2s), made)
             cam_objs.append(cobj)
     except BaseException:
         made.remove_all()
@@ -292,12 +300,12 @@ def manifest(coll: bpy.types.Collection) -> dict[str, Any]:
     return json.loads(coll[P_MANIFEST])
 
 
-def _apply_scale(empty: bpy.types.Object, coll: bpy.types.Collection, sbar: float) -> None:
+def _apply_scale(empty: bpy.types.Object, coll: bpy.types.Collection, sbar: float, made: _Created | None = None) -> None:
     """Re-key ``empty`` at scale ``sbar`` about each frame's training camera centre."""
     base = np.asarray(empty[P_BASE], dtype=np.float64).reshape(-1, 4, 4)
     frames = np.asarray(empty[P_FRAMES], dtype=np.float64)
     centres = np.asarray(coll[P_CENTRES], dtype=np.float64).reshape(-1, 3)[frames.astype(int)]
-    key_matrices(empty, frames + 1.0, core.configured_poses(base, centres, sbar))
+    key_matrices(empty, frames + 1.0, core.configured_poses(base, centres, sbar), made)
     empty[P_KEYED] = sbar
     for child in empty.children:
         if P_INV in child:

@@ -26,6 +26,9 @@ class OSN_OT_import(bpy.types.Operator, ImportHelper):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         path = self.filepath or self.directory
+        if not path:
+            self.report({"ERROR"}, f"OSN import: no export chosen (pass filepath= the export's {core.MANIFEST_NAME})")
+            return {"CANCELLED"}
         try:
             coll = sb.import_export(context, path)
         except (core.ExportFormatError, OSError) as e:
@@ -35,9 +38,20 @@ class OSN_OT_import(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        if self.filepath and os.path.basename(self.filepath) == core.MANIFEST_NAME:  # dropped file
+        if _manifest_given(self):  # a dropped file, or a script naming the manifest
             return self.execute(context)
         return ImportHelper.invoke(self, context, event)
+
+
+def _manifest_given(op: bpy.types.Operator) -> bool:
+    """Whether this call of ``op`` names an ``osn_export.json`` (then invoke imports without a browser).
+
+    ``filepath`` is remembered between runs (the file browser reopens in the last export's folder),
+    so a value alone does not mean the caller chose it: ``is_property_set`` with its default
+    ``ghost=True`` is false for a value carried over from the previous run and true only when the
+    caller (drop handler, menu/keymap item, script) set it for this call.
+    """
+    return op.properties.is_property_set("filepath") and os.path.basename(op.filepath) == core.MANIFEST_NAME
 
 
 class OSN_FH_import(bpy.types.FileHandler):

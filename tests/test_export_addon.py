@@ -105,6 +105,22 @@ def exported(tmp_path_factory: pytest.TempPathFactory):
     return scene, manifest, time.perf_counter() - t0
 
 
+def _drop_vdb_grid(export_dir: Path, rel: str, grid: str) -> None:
+    """Rewrite ``rel`` without grid ``grid`` and record its new size and sha256 in the manifest,
+    so the export passes ``read_export`` and only Blender's volume check can reject it."""
+    from blender_addon import osn_core as core
+    from osn.export import _openvdb
+
+    vdb, path = _openvdb(), export_dir / rel
+    grids, _ = vdb.readAll(str(path))
+    assert grid in {g.name for g in grids}
+    vdb.write(str(path), grids=[g for g in grids if g.name != grid])
+    m = json.loads((export_dir / "osn_export.json").read_text())
+    (entry,) = (f for f in m["files"] if f["path"] == rel)
+    entry["bytes"], entry["sha256"] = path.stat().st_size, core.sha256_file(str(path))
+    (export_dir / "osn_export.json").write_text(json.dumps(m))
+
+
 @pytest.fixture(scope="module")
 def blender(exported, tmp_path_factory: pytest.TempPathFactory):
     """Run the Blender side once; returns (results dict, work directory)."""
@@ -115,10 +131,11 @@ def blender(exported, tmp_path_factory: pytest.TempPathFactory):
     t0 = time.perf_counter()
     zip_path = build_addon_zip(work / "dist")
     zip_s = time.perf_counter() - t0
-    # Malformed copies: wrong version, a missing file, a corrupt grid.
+    # Malformed copies: wrong version, a missing file, a corrupt grid, and (failing only after the
+    # wall and sphere 1 are built and keyed) sphere 2's volume without its colour grid.
     src = manifest.parent
     bad = {}
-    for kind in ("version", "missing", "corrupt"):
+    for kind in ("version", "missing", "corrupt", "no_color"):
         d = work / f"bad_{kind}"
         shutil.copytree(src, d)
         if kind == "version":
@@ -127,6 +144,8 @@ def blender(exported, tmp_path_factory: pytest.TempPathFactory):
             (d / "osn_export.json").write_text(json.dumps(m))
         elif kind == "missing":
             (d / "objects" / "2.ply").unlink()
+        elif kind == "no_color":
+            _drop_vdb_grid(d, "objects/2.vdb", "color")
         else:
             blob = bytearray((d / "objects" / "1.vdb").read_bytes())
             blob[len(blob) // 2 : len(blob) // 2 + 64] = b"\xff" * 64
@@ -234,17 +253,122 @@ def test_scale_net_numpy_matches_torch(exported) -> None:
 
 
 def test_malformed_exports_leave_scene_untouched(blender) -> None:
-    res, _ = blender
-    for kind, expect in (("version", "version 99"), ("missing", "2.ply: missing file"), ("corrupt", "1.vdb: corrupt file")):
+    from blender_addon import osn_core as core
+
+    res, work = blender
+    # "no_color" passes read_export (right checksums): it fails in Blender's volume check on the
+    # last object, after the others were built and keyed, so it exercises the rollback of every
+    # datablock kind, the keyframe actions included.
+    core.read_export(str(work / "bad_no_color"))
+    for kind, expect in (("version", "version 99"), ("missing", "2.ply: missing file"), ("corrupt", "1.vdb: corrupt file"),
+                         ("no_color", "2.vdb: volume lacks grids")):
         r = res["bad"][kind]
         assert r["raised"], kind
         assert expect in r["message"], r["message"]
         assert r["counts_after"] == r["counts_before"], kind
 
 
+def _mutate(m: dict, keys: tuple, value) -> None:
+    for k in keys[:-1]:
+        m = m[k]
+    m[keys[-1]] = value
+
+
+# (manifest keys, bad value, what the one-line message must name)
+MALFORMED_FIELDS = [
+    (("objects", 1, "bbox"), [0.0, 0.0, 0.0, 1.0, 1.0], "object 1: bbox"),
+    (("objects", 1, "scale_range"), [1], "object 1: scale_range"),
+    (("objects", 0, "id"), "a", "object 0: id"),
+    (("camera", "K"), [1.0, 2.0, 3.0], "camera.K"),
+    (("files", 0, "path"), 7, "files[0].path"),
+    (("timestamps",), 3, "'timestamps'"),
+    (("objects", 2, "grid_shape"), ["x", 20, 20], "object 2: grid_shape"),
+    (("objects", 1, "valid_interval"), None, "object 1: valid_interval"),
+    (("objects", 1, "is_anchor"), "no", "object 1: is_anchor"),
+    (("objects", 1, "volume"), ["objects/1.vdb"], "volume"),
+    (("objects",), {"0": {}}, "'objects' must be a list"),
+    (("camera", "width"), "40", "camera.width"),
+    (("camera",), "cam", "'camera' must be a JSON object"),
+    (("files", 1, "bytes"), "12", "files[1].bytes"),
+    (("files",), "arrays.npz", "'files' must be a list"),
+    (("scale_network", "threshold"), "high", "scale_network: threshold"),
+    (("scale_network", "layers"), "2", "scale_network: layers"),
+]
+
+
+@pytest.mark.parametrize("keys,value,names", MALFORMED_FIELDS, ids=[".".join(map(str, k)) for k, _, _ in MALFORMED_FIELDS])
+def test_malformed_manifest_fields_are_one_line_format_errors(exported, tmp_path: Path, keys, value, names) -> None:
+    """A wrong type or shape in any manifest field is an ExportFormatError naming the file and the
+    field (the import operator reports those; anything else reaches the artist as a traceback)."""
+    from blender_addon import osn_core as core
+
+    _, manifest, _ = exported
+    d = tmp_path / "export"
+    shutil.copytree(manifest.parent, d)
+    m = json.loads((d / "osn_export.json").read_text())
+    _mutate(m, keys, value)
+    (d / "osn_export.json").write_text(json.dumps(m))
+    with pytest.raises(core.ExportFormatError) as e:
+        core.read_export(str(d))
+    msg = str(e.value)
+    assert msg.startswith(f"{d / 'osn_export.json'}: ") and "\n" not in msg, msg
+    assert names in msg, msg
+
+
+class _FakeImportOp:
+    """Stands in for an ``OSN_OT_import`` instance in ``invoke``: ``filepath`` holds a value that
+    this call set (drop handler, script) or that Blender carried over from the last run (a
+    "ghost" property: ``is_property_set(name)`` false, ``is_property_set(name, ghost=False)`` true)."""
+
+    def __init__(self, filepath: str, set_in_call: bool) -> None:
+        self.filepath, self.directory, self.calls = filepath, "", []
+        op = self
+
+        class _Properties:
+            def is_property_set(self, name: str, ghost: bool = True) -> bool:
+                present = name == "filepath" and bool(op.filepath)
+                return present and (set_in_call or not ghost)
+
+        self.properties = _Properties()
+
+    def execute(self, _context) -> set:
+        self.calls.append("import")
+        return {"FINISHED"}
+
+
+def test_import_menu_opens_file_browser_unless_this_call_names_the_manifest(monkeypatch) -> None:
+    from blender_addon import ui
+
+    monkeypatch.setattr(ui.ImportHelper, "invoke", lambda op, _c, _e: op.calls.append("browser") or {"RUNNING_MODAL"})
+    for filepath, set_in_call, expect in (
+        ("/exports/a/osn_export.json", False, "browser"),  # File > Import after an import: remembered path
+        ("/exports/a/osn_export.json", True, "import"),  # dropped on the viewport, or a script
+        ("/exports/a/notes.json", True, "browser"),  # another dropped JSON: let the artist pick
+        ("", False, "browser"),
+    ):
+        op = _FakeImportOp(filepath, set_in_call)
+        ui.OSN_OT_import.invoke(op, None, None)
+        assert op.calls == [expect], (filepath, set_in_call)
+
+
+def test_addon_manifest_declares_file_access(tmp_path: Path) -> None:
+    """The add-on reads export files from disk, so the extension declares the "files" permission
+    (Blender shows it at install); Blender's own validator accepts the manifest."""
+    import tomllib
+
+    from osn.addon_build import build_addon_zip
+
+    m = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())
+    assert m["permissions"]["files"].strip()
+    assert set(m["permissions"]) == {"files"}
+    build_addon_zip(tmp_path)  # runs blender_ext validate + build
+
+
 def test_import_builds_objects_cameras_and_loads_volumes(blender, exported) -> None:
     res, _ = blender
     assert res["enabled"]
+    # A scripted/dropped call naming the manifest imports at once; without a path, the browser opens.
+    assert res["invoke"] == {"set": ["import"], "unset": ["browser"]}
     assert res["osn_objects"] == ["wall", "sphere1", "sphere2"]
     assert sorted(res["children"]["sphere1"]) == ["MESH", "VOLUME"]
     assert res["cameras"] == ["OSN test camera 0", "OSN training camera"]
@@ -530,6 +654,30 @@ def _blender_main(args: dict) -> None:
         render(f"train_{cfg_name}", "OSN training camera", cfg, volumes=False)
         render(f"novel_{cfg_name}", "OSN test camera 0", cfg, volumes=False)
         render(f"vol_train_{cfg_name}", "OSN training camera", cfg, volumes=True)
+    # invoke on a real operator instance: background Blender has no event, so INVOKE_DEFAULT runs
+    # execute; from there call the operator's invoke with the file browser and the import stubbed.
+    ui = addon.ui
+    cls, helper = ui.OSN_OT_import, ui.ImportHelper
+    real_execute, real_browser = cls.execute, helper.invoke
+    res["invoke"] = {}
+
+    def probe(op, context):
+        outcome: list[str] = []
+        cls.execute = lambda _op, _c: outcome.append("import") or {"CANCELLED"}
+        helper.invoke = lambda _op, _c, _e: outcome.append("browser") or {"CANCELLED"}
+        try:
+            cls.invoke(op, context, None)
+        finally:
+            cls.execute, helper.invoke = probe, real_browser
+        res["invoke"]["set" if op.properties.is_property_set("filepath") else "unset"] = outcome
+        return {"CANCELLED"}
+
+    cls.execute = probe
+    try:
+        bpy.ops.import_scene.osn("INVOKE_DEFAULT", filepath=args["export"])
+        bpy.ops.import_scene.osn("INVOKE_DEFAULT")
+    finally:
+        cls.execute = real_execute
     timing["blender_total_s"] = time.perf_counter() - t_start
     (work / "results.json").write_text(json.dumps(res))
 
