@@ -223,7 +223,7 @@ def render_layers(run: TrainedRun, frame: D.Frame, grids: list[np.ndarray], base
             r = run.render_view(frame.camera_to_world, frame.time_index, sbar, objects=[k])
             a = r["acc"].reshape(-1)
             col = r["rgb"].reshape(-1, 3) - (1.0 - a)[:, None] * bg
-            dep = np.where(a > 1e-4, r["depth"].reshape(-1), np.inf)
+            dep = r["depth"].reshape(-1)  # +inf where the layer is empty
             per.append(Layer(torch.from_numpy(col).float(), torch.from_numpy(a).float(), torch.from_numpy(dep).float()))
         out.append(per)
     return out

@@ -280,6 +280,23 @@ class FieldConfig:
     lr_net: float = 1e-3
     tv_density: float = 0.0
 
+    def __post_init__(self) -> None:
+        if self.kind not in ("dense", "tensorf"):
+            raise ValueError(f"field.kind must be dense or tensorf, got {self.kind!r}")
+        for name in ("resolution", "initial_resolution"):  # trilinear interpolation needs 2 voxels
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 2):
+                raise ValueError(f"field.{name} must be an integer >= 2, got {getattr(self, name)!r}")
+        for name in ("density_components", "appearance_components", "app_dim", "hidden"):
+            if not getattr(self, name) >= 1:
+                raise ValueError(f"field.{name} must be >= 1, got {getattr(self, name)!r}")
+        if not self.upsample_steps >= 0:
+            raise ValueError(f"field.upsample_steps must be >= 0, got {self.upsample_steps!r}")
+        for name in ("lr_grid", "lr_net"):
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ValueError(f"field.{name} must be a positive learning rate, got {getattr(self, name)!r}")
+        if not self.tv_density >= 0:
+            raise ValueError(f"field.tv_density must be >= 0, got {self.tv_density!r}")
+
     def resolutions(self) -> list[int]:
         """The resolution after each upsampling step, from ``initial_resolution`` to ``resolution``."""
         if self.upsample_steps <= 0 or self.initial_resolution >= self.resolution:

@@ -34,6 +34,10 @@ class CheckpointError(ValueError):
     """A run's ``checkpoint.pt`` is unreadable or from another format (message names the file)."""
 
 
+#: Opacity at or below which a rendered pixel shows no surface (its depth is ``+inf``):
+#: ``depth / acc`` of a nearly empty ray is noise (opacity 1e-7 turns a depth of 2 into 0.2).
+EMPTY_ACC = 1e-4
+
 @dataclass
 class TrainedRun:
     """Everything needed to score and render configurations of a trained model."""
@@ -92,8 +96,10 @@ class TrainedRun:
 
         ``camera_to_world`` is a dataset-world OpenCV camera (test view) or None for the training
         camera of that timestamp. ``objects`` restricts rendering to some object positions (a
-        layer). Returns ``rgb (H,W,3)``, ``depth (H,W)`` (planar, scene units, where ``acc > 0``),
-        ``acc (H,W)`` and ``ids (H,W)`` (object id of the largest weight share, 255 where empty).
+        layer). Returns ``rgb (H,W,3)``, ``depth (H,W)`` (planar, scene units; ``+inf`` where
+        ``acc <= EMPTY_ACC``, as in the dataset format, so depth metrics skip holes instead of
+        reading them as surfaces at the camera), ``acc (H,W)`` and ``ids (H,W)`` (object id of the
+        largest weight share, 255 where empty).
         """
         inp = self.inputs
         H, W = inp.height, inp.width
@@ -107,7 +113,7 @@ class TrainedRun:
         bg = torch.tensor(cfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32, device=self.device)
         wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
         rgb = torch.zeros(H * W, 3, device=self.device) + bg
-        depth = torch.zeros(H * W, device=self.device)
+        depth = torch.full((H * W,), float("inf"), device=self.device)
         acc = torch.zeros(H * W, device=self.device)
         ids = torch.full((H * W,), 255, dtype=torch.long, device=self.device)
         if keep:
@@ -123,7 +129,7 @@ class TrainedRun:
                 out: RenderOutput = render(rays, dc, S, None, bg, float(cfg.get("skip_occluded", 0.0)))
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc
-                depth[i : i + R] = out.normalised_depth()
+                depth[i : i + R] = torch.where(out.acc > EMPTY_ACC, out.normalised_depth(), torch.full_like(out.acc, float("inf")))
                 ids[i : i + R] = torch.where(out.acc > 0.5, obj_ids[out.log_seg.argmax(1)], torch.full_like(ids[i : i + R], 255))
         return {
             "rgb": rgb.clamp(0, 1).reshape(H, W, 3).cpu().numpy(),

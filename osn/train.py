@@ -20,7 +20,8 @@ are never evaluated on its rays; no depth loss is used when the inputs carry no 
 
 Run directory: ``config.yaml``, ``inputs/`` (the per-object inputs used), ``checkpoint.pt``
 (atomic, every ``checkpoint_every`` iterations and at the end; has every RNG state, so
-``--resume`` reproduces an uninterrupted run bit for bit), ``metrics.jsonl`` (one JSON line per
+``--resume`` reproduces an uninterrupted run bit for bit on the CPU; CUDA's atomic adds make
+runs agree only up to rounding), ``metrics.jsonl`` (one JSON line per
 evaluation: wall time, iteration, phase, losses, training PSNR and with ground truth the
 valid-set precision / recall / IoU and the relative scale-interval error).
 """
@@ -45,6 +46,7 @@ import yaml
 
 from benchgen import dataset as D
 from benchgen.cameras import pixel_rays
+from benchgen.cliutil import UserError
 
 from .fields import Field, FieldConfig, make_field
 from .inputs import IGNORE_ID, SceneInputs, load_inputs, oracle_inputs, save_inputs
@@ -363,7 +365,9 @@ class Trainer:
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.iteration, self.field_iter, self.elapsed = s["iteration"], s["field_iter"], s["elapsed"]
         self.fallbacks, self.noise_floor = s["fallbacks"], s["noise_floor"]
-        self.positives = s.get("positives", self.positives)  # version 1: resumes with an empty buffer
+        # RNG states must be CPU byte tensors and the replay buffer lives on the CPU, whatever
+        # device the checkpoint was read onto.
+        self.positives = s.get("positives", self.positives).cpu()  # version 1: resumes with an empty buffer
         self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
         for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
             f.set_resolution(r)
@@ -373,8 +377,8 @@ class Trainer:
         if self.net is not None:
             self.net.load_state_dict(s["net"])
             self.net_opt.load_state_dict(s["net_opt"])
-        self.gen.set_state(s["gen"])
-        torch.set_rng_state(s["torch_rng"])
+        self.gen.set_state(s["gen"].cpu())
+        torch.set_rng_state(s["torch_rng"].cpu())
 
     def phase(self, it: int) -> Phase:
         return next(p for p in self.schedule if p.start <= it < p.end)
@@ -557,6 +561,14 @@ class Trainer:
             self.cache["gt"] = self.st.labels.reshape(-1)[self.cache["flat"]]
             self.cache["constraints"] = order_constraints(self.cache["depth"], self.cache["covered"], self.cache["gt"])
             self.cache_key = phase.start
+            if not len(self.cache["flat"]):
+                # No ray constrains any depth order (fields still transparent, or every ray dropped
+                # as semi-transparent): every sample is labelled valid, which says nothing.
+                log.warning(
+                    "scale phase at iteration %d: no contested ray among %d labelled pixels (%d semi-transparent); "
+                    "the network learns no depth order (fields not opaque yet? see uncertain_acc)",
+                    phase.start, len(flat), int(c["uncertain"].sum()),
+                )
 
     def _constraints(self) -> OrderConstraints:
         """The scale phase's depth-order constraints: every contested pool ray, or a random
@@ -635,8 +647,10 @@ class Evaluator:
         self.tr = trainer
         st, cfg = trainer.st, trainer.cfg
         g = torch.Generator().manual_seed(12345)
-        n = min(cfg.eval_pixels, st.T * st.H * st.W)
-        self.flat = torch.randperm(st.T * st.H * st.W, generator=g)[:n].to(st.device)
+        # Pixels of dropped objects (IGNORE_ID) are never trained on, so they are not scored.
+        pool = st.usable if st.usable is not None else torch.arange(st.T * st.H * st.W, device=st.device)
+        n = min(cfg.eval_pixels, len(pool))
+        self.flat = pool[torch.randperm(len(pool), generator=g)[:n].to(st.device)]
         self.region = None
         has_region = dataset_root is not None and (Path(dataset_root) / "valid_region.json").exists()
         problem = st.inputs.ground_truth_problem() if has_region else None
@@ -706,6 +720,10 @@ def _save_checkpoint(path: Path, trainer: Trainer) -> None:
     D.atomic_write_bytes(path, buf.getvalue())
 
 
+class TrainingDiverged(UserError):
+    """A loss became NaN or infinite; the message names the run, iteration, phase and loss."""
+
+
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:
     """The records of a run's ``metrics.jsonl`` (empty if absent). A line cut by a kill
     mid-write, or anything else that is not a record with an ``iteration``, is skipped."""
@@ -770,7 +788,9 @@ def train(
     trainer = Trainer(inputs, cfg, device)
     metrics_path = out / "metrics.jsonl"
     if resume:
-        trainer.load_state_dict(read_checkpoint(ckpt, device))
+        # Read onto the CPU: load_state_dict moves weights and optimiser state to the device
+        # itself, and the RNG states it restores must stay on the CPU (a CUDA resume crashed).
+        trainer.load_state_dict(read_checkpoint(ckpt, "cpu"))
         _truncate_metrics(metrics_path, trainer.iteration)
     ds = D.read_json(out / "run.json").get("dataset")
     evaluator = Evaluator(trainer, ds)
@@ -781,6 +801,12 @@ def train(
     while trainer.iteration < stop:
         ph = trainer.phase(trainer.iteration)
         losses = trainer.step()
+        bad = sorted(k for k, v in losses.items() if not math.isfinite(v))
+        if bad:  # stop before a NaN reaches a checkpoint; the last good one stays resumable
+            raise TrainingDiverged(
+                f"{out}: training diverged at iteration {trainer.iteration} ({ph.name} phase): loss {', '.join(bad)} is "
+                f"{losses[bad[0]]}; the last checkpoint is kept (lower field.lr_grid / scale_lr, or check the inputs)"
+            )
         for key, v in losses.items():
             acc.setdefault(key, []).append(v)
         it = trainer.iteration
@@ -808,7 +834,7 @@ def train(
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``osn train DATASET --out RUN [--config FILE] [--resume]``."""
-    from benchgen.cliutil import UserError, subcommand
+    from benchgen.cliutil import subcommand
 
     def _cmd(args: argparse.Namespace) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -168,6 +168,23 @@ def test_label_pool_drops_rays_with_a_semi_transparent_object(tiny_dataset: Path
     assert not tr.render_alone_depths(flat)["uncertain"].any()
 
 
+def test_scale_phase_warns_when_no_ray_constrains_overlapping_objects(tiny_dataset: Path, caplog) -> None:
+    """Untrained fields are transparent, so no ray constrains a depth order: the scale phase
+    would label every sample valid and learn nothing; it says so. Trained fields do not warn."""
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(coverage_threshold=0.9, uncertain_acc=0.05), torch.device("cpu"))
+    with caplog.at_level(logging.WARNING):
+        tr.ensure_cache(tr.schedule[1])
+    assert len(tr.cache["flat"]) == 0
+    assert "no contested ray among" in caplog.text and "learns no depth order" in caplog.text
+    caplog.clear()
+    for _ in range(150):  # opaque enough for a few contested rays on this 32 px scene
+        tr.step_stage1()
+    tr.cache_key = None
+    with caplog.at_level(logging.WARNING):
+        tr.ensure_cache(tr.schedule[1])
+    assert len(tr.cache["flat"]) > 0 and "no contested ray" not in caplog.text
+
+
 def test_resume_skips_a_metrics_line_cut_by_a_kill(tmp_path):
     from osn.train import _truncate_metrics
 
@@ -275,3 +292,48 @@ def test_metrics_reader_skips_a_line_cut_by_a_kill(tmp_path: Path) -> None:
     path.write_text('{"iteration": 20, "psnr": 20.5}\n[1, 2]\n\n{"iteration": 40, "psnr": 21.0}\n{"iteration": 60, "ps')
     assert [r["iteration"] for r in training_curve(path)] == [20, 40]
     assert training_curve(tmp_path / "absent.jsonl") == []
+
+
+def test_resume_reads_the_checkpoint_onto_the_cpu(tiny_dataset: Path, tmp_path: Path, monkeypatch) -> None:
+    """Resume restores RNG states, which must be CPU byte tensors: the checkpoint is read onto
+    the CPU whatever the training device (read onto CUDA, ``Generator.set_state`` raised)."""
+    import osn.train as T
+
+    run = train(tiny_dataset, tmp_path / "r", _cfg(stage1_iters=4, rounds=0, final_scale_iters=0),
+                progress=False, max_iterations=2)
+    seen = []
+    real = T.read_checkpoint
+    monkeypatch.setattr(T, "read_checkpoint", lambda p, loc="cpu": seen.append(str(loc)) or real(p, loc))
+    train(None, run, resume=True, progress=False)
+    assert seen == ["cpu"] and _metrics(run)[-1]["iteration"] == 4
+
+
+def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
+    tiny_dataset: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """A field that blows up (its grid turned NaN at iteration 27, as a diverging optimiser
+    would): training stops at the first non-finite loss, naming the run, iteration, phase and
+    loss, and the checkpoint of iteration 25 stays as it was, finite and resumable."""
+    from osn.train import TrainingDiverged
+
+    real = Trainer.step_stage1
+
+    def poisoned(self: Trainer) -> dict[str, float]:
+        if self.iteration == 27:
+            with torch.no_grad():
+                self.fields[0].grid.fill_(float("nan"))
+        return real(self)
+
+    monkeypatch.setattr(Trainer, "step_stage1", poisoned)
+    with pytest.raises(TrainingDiverged, match=r"r: training diverged at iteration 28 \(stage1 phase\): loss .* is nan"):
+        train(tiny_dataset, tmp_path / "r", _cfg(), progress=False)
+    state = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    assert state["iteration"] == 25
+    assert all(torch.isfinite(v).all() for sd in state["fields"] for v in sd.values())
+
+
+@pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0}])
+def test_field_config_rejects_impossible_values(bad: dict) -> None:
+    (key, _), = bad.items()
+    with pytest.raises(ValueError, match=f"field.{key} must"):
+        FieldConfig(**bad)

@@ -681,3 +681,21 @@ def test_doc_table_names_real_tests() -> None:
     assert not named - set(defined), f"named in the doc but not defined: {sorted(named - set(defined))}"
     here = {n for n, f in defined.items() if f == Path(__file__).name}
     assert not here - named, f"tests missing from docs/robustness.md: {sorted(here - named)}"
+
+
+def test_rendered_depth_is_infinite_where_nothing_is_hit(trained: Path) -> None:
+    """A rendered pixel with (almost) no opacity has no surface: its depth is +inf, as in the
+    dataset format, so SSIMAE skips it; before, ``depth / acc`` put a surface near the camera
+    there and a few such pixels moved SSIMAE of a perfect depth map to 0.5."""
+    from osn import metrics as M
+    from osn.run import EMPTY_ACC, load_run
+
+    run = load_run(trained)
+    layer = run.render_view(None, 0, np.ones(run.inputs.num_objects), objects=[1])  # one small object
+    empty = layer["acc"] <= EMPTY_ACC
+    assert empty.any() and (~empty).any()
+    assert np.isinf(layer["depth"][empty]).all() and (np.isfinite(layer["depth"][~empty]) & (layer["depth"][~empty] > 0)).all()
+    truth = np.where(empty, 3.0, layer["depth"])  # a ground truth with a surface everywhere
+    whole = float(M.ssimae(torch.from_numpy(layer["depth"]), torch.from_numpy(truth)))
+    hit = float(M.ssimae(torch.from_numpy(layer["depth"]), torch.from_numpy(truth), torch.from_numpy(~empty)))
+    assert whole == pytest.approx(hit, abs=1e-12) and whole < 1e-6
