@@ -454,6 +454,18 @@ class Trainer:
         sbar, _, p, fell_back = sample_valid(
             self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False
         )
+        if fell_back and len(self.positives):
+            # The valid share of the box shrinks exponentially with the object count (gnome-house:
+            # 1.4% with 3 free objects), so uniform candidates can all miss it; candidates around
+            # vectors the scale phase labelled valid find it. Only then: the uniform draw, which
+            # covers the whole valid set, stays the rule.
+            near = self._near_positives(self.cfg.candidates).to(self.device)
+            with torch.no_grad():
+                scores = self.net.prob(near)
+            ok = torch.nonzero(scores > self.cfg.valid_threshold)[:, 0].cpu()
+            if len(ok):
+                i = int(ok[torch.randint(len(ok), (1,), generator=self.gen)][0])
+                sbar, p, fell_back = full_sbar(near[i : i + 1], self.st.ranges, self.st.anchor)[0], float(scores[i]), False
         if fell_back and self.fallbacks == 0:
             log.warning("no candidate scored above %.2f (best %.3f): field steps use the best one; "
                         "the count is in metrics.jsonl ('fallbacks')", self.cfg.valid_threshold, p)
@@ -588,11 +600,15 @@ class Trainer:
         n_near = int(round(n * cfg.label_replay)) if len(self.positives) else 0
         s = torch.rand(n - n_near, st.K - 1, generator=self.gen)
         if n_near:
-            pick = self.positives[torch.randint(len(self.positives), (n_near,), generator=self.gen)]
-            sigma = torch.tensor([0.01, 0.03, 0.1])[torch.randint(3, (n_near, 1), generator=self.gen)]
-            near = (pick + sigma * torch.randn(n_near, st.K - 1, generator=self.gen)).clamp(0.0, 1.0 - 1e-6)
-            s = torch.cat([s, near])
+            s = torch.cat([s, self._near_positives(n_near)])
         return s.to(self.device)
+
+    def _near_positives(self, n: int) -> torch.Tensor:
+        """``n`` normalised scale vectors (CPU) jittered around remembered valid ones, at three
+        spreads (0.01, 0.03, 0.1 of the box) so both the boundary and the interior are reached."""
+        pick = self.positives[torch.randint(len(self.positives), (n,), generator=self.gen)]
+        sigma = torch.tensor([0.01, 0.03, 0.1])[torch.randint(3, (n, 1), generator=self.gen)]
+        return (pick + sigma * torch.randn(n, self.st.K - 1, generator=self.gen)).clamp(0.0, 1.0 - 1e-6)
 
     def _remember(self, s: torch.Tensor) -> None:
         """Keep the last ``REPLAY_SIZE`` scale vectors labelled valid (CPU, checkpointed)."""

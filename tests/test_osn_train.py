@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from osn.fields import FieldConfig
-from osn.inputs import oracle_inputs
+from osn.inputs import normalise_scales, oracle_inputs
 from osn.train import Evaluator, Trainer, TrainConfig, build_schedule, train
 from osn.volume import render
 
@@ -115,6 +115,31 @@ def test_field_phase_survives_an_untrained_network(tiny_dataset: Path, caplog) -
         out = tr.step_fields()
     assert np.isfinite(out["rgb"]) and np.isfinite(out["seg"]) and tr.fallbacks == 1
     assert "no candidate scored above" in caplog.text  # logged once per run, not per step
+
+
+def test_field_phase_finds_a_tiny_valid_set_near_remembered_positives(tiny_dataset: Path) -> None:
+    """A valid set far smaller than the box (as with many objects) that uniform candidates miss:
+    candidates around the scale phase's remembered valid vectors find it, no fallback."""
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(candidates=64), torch.device("cpu"))
+    centre = torch.tensor([0.7, 0.2])
+
+    class Tiny(torch.nn.Module):  # valid only within 0.005 of centre: 1e-4 of the box
+        num_free = 2
+
+        def prob(self, s: torch.Tensor) -> torch.Tensor:
+            return ((s - centre).abs().max(1).values < 0.005).float()
+
+    tr.net = Tiny()
+    sbar, score = tr.sample_configuration()
+    assert tr.fallbacks == 1  # nothing remembered yet: the uniform draw misses, best one used
+    tr.positives = centre[None].clone()
+    for _ in range(5):
+        sbar, score = tr.sample_configuration()
+        assert score == 1.0
+    assert tr.fallbacks == 1
+    free = [k for k in range(tr.st.K) if k != tr.st.anchor]
+    s = normalise_scales(sbar[free].double().numpy()[None], tr.st.ranges[free].numpy())[0]
+    assert np.abs(s - centre.numpy()).max() < 0.005
 
 
 def test_without_depth_there_is_no_depth_loss(tiny_dataset: Path) -> None:
