@@ -17,8 +17,8 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml Makefile
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (Python 3.11 is required)"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@# Keep an already-installed torch (CPU or CUDA); otherwise install TORCH_SPEC first so that
-	@# resolving the project's unpinned 'torch' never pulls CUDA packages.
+	@# Keep an already-installed torch (CPU or CUDA build of the pinned version); otherwise install
+	@# TORCH_SPEC first, so pip never resolves torch itself (that would pull CUDA packages).
 	@$(PY) -c "import torch" >/dev/null 2>&1 || $(PY) -m pip install --quiet $(TORCH_SPEC)
 	$(PY) -m pip install --quiet -e ".[test]"
 	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared

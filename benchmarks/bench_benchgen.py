@@ -18,6 +18,8 @@ from pathlib import Path
 from benchgen.generate import generate
 from benchgen.spec import load_preset, spec_from_dict
 
+from benchutil import print_command
+
 
 def run(spec, label: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
@@ -36,6 +38,7 @@ def main() -> None:
     ap.add_argument("--skip-sweep", action="store_true", help="only the full gnome-house run")
     ap.add_argument("--demo", action="store_true", help="also time the full gnome-house-demo preset (G=50)")
     args = ap.parse_args()
+    print_command()
     if args.demo:
         before = os.getloadavg()
         run(load_preset("gnome-house-demo"), "gnome-house-demo 15x15 64px G=50")

@@ -17,6 +17,8 @@ import time
 
 import numpy as np
 
+from benchutil import print_command
+
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -28,6 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--topk", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    print_command()
 
     from osn.evaluate import exact_psnr, layered_psnr, load_ground_truth, render_sample, sample_configurations
     from osn.run import load_run
@@ -53,7 +56,6 @@ def main(argv: list[str] | None = None) -> int:
     naive_psnr = exact_all[naive_pick, np.arange(G)]
     layered_psnr_exact = exact_all[layered_pick, np.arange(G)]
     loss = naive_psnr - layered_psnr_exact
-    print(f"command: python benchmarks/bench_bestofn.py {' '.join(sys.argv[1:])}")
     print(f"N={N} samples, G={G} ground truths, V={V} views, {run.inputs.width}x{run.inputs.height}, "
           f"load average {os.getloadavg()[0]:.1f}")
     print(f"naive search:   {t_naive:8.1f} s  ({N * V} exact renders)")

@@ -23,6 +23,8 @@ import time
 
 from osn.preprocess import PreprocessConfig, preprocess_dataset
 
+from benchutil import print_command
+
 VARIANTS: dict[str, dict] = {
     "default": {},
     "previous": {"grey": "luminance", "guided_matching": False, "mapper_restarts": 1, "epipolar_error": 2.0},
@@ -38,11 +40,11 @@ def main() -> None:
     ap.add_argument("dataset", help="benchgen dataset (its ground truth measures the accuracy)")
     ap.add_argument("--variants", default="previous,default", help=f"comma-separated, from {', '.join(VARIANTS)}")
     args = ap.parse_args()
+    print_command()
     names = args.variants.split(",")
     unknown = [n for n in names if n not in VARIANTS]
     if unknown:
         sys.exit(f"bench_preprocess: unknown variant(s) {', '.join(unknown)} (choose from {', '.join(VARIANTS)})")
-    print(f"# {' '.join(sys.argv)}", flush=True)
     first = None
     for name in names:
         cfg = PreprocessConfig(on_failure="skip", **VARIANTS[name])

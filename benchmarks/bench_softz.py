@@ -31,6 +31,8 @@ from osn.softz import implied_segmentation, sample_accuracy, validity_labels
 from osn.train import TrainConfig, Trainer, pick_device
 from osn.volume import render
 
+from benchutil import print_command
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -40,6 +42,7 @@ def main() -> None:
     ap.add_argument("--tolerance", type=float, default=2e-3)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    print_command()
 
     run = Path(args.run)
     cfg = TrainConfig.from_yaml(run / "config.yaml")

@@ -23,6 +23,8 @@ from osn.inputs import oracle_inputs
 from osn.train import TrainConfig, Trainer, pick_device
 from osn.volume import render
 
+from benchutil import print_command
+
 
 @torch.no_grad()
 def alone_psnr(tr: Trainer, flat: torch.Tensor) -> float:
@@ -49,6 +51,7 @@ def main() -> None:
     ap.add_argument("--target", type=float, default=20.0)
     ap.add_argument("--eval-every", type=float, default=10.0, help="seconds of training between evaluations")
     args = ap.parse_args()
+    print_command()
     base = TrainConfig.from_yaml(args.config)
     inputs = oracle_inputs(args.dataset)
     kinds = {

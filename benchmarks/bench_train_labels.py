@@ -30,6 +30,8 @@ from osn.scale_net import full_sbar
 from osn.softz import trimmed_labels
 from osn.train import Evaluator, Phase, TrainConfig, Trainer
 
+from benchutil import print_command
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -38,6 +40,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("overrides", nargs="*", help="key=value training-config overrides")
     a = ap.parse_intermixed_args()
+    print_command()
     logging.basicConfig(level=logging.ERROR)
     run = Path(a.run)
     d = yaml.safe_load((run / "config.yaml").read_text())

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shlex
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -38,6 +39,27 @@ def _scaled_config(iterations: int | None, config_file: str | None):
             final_scale_iters=max(1, round(cfg.final_scale_iters * f)),
         )
     return cfg
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"field": {"kind": ...}}`` -> ``{"field.kind": ...}``, so a difference names its key."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def demo_command(args: argparse.Namespace) -> str:
+    """The ``osn demo`` command line that reproduces ``args`` (every option, defaults included)."""
+    parts = ["osn", "demo"]
+    for k, v in sorted(vars(args).items()):
+        if k in ("func", "debug", "resume_hint") or v is None:
+            continue
+        parts += ["-n" if k == "n" else f"--{k.replace('_', '-')}", str(v)]
+    return shlex.join(parts)
 
 
 def run_demo(args: argparse.Namespace) -> dict[str, Any]:
@@ -122,8 +144,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
 
         run = load_run(run_dir)
         res = ev(run, dataset, Samples.load(run_dir / "samples.npz"), EvalConfig(max_views=args.max_views))
-        write_report(res, report_dir, run_dir, "osn demo " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in sorted(vars(args).items())
-                                                                      if k in ("preset", "resolution", "iterations", "n", "max_views") and v))
+        write_report(res, report_dir, run_dir, demo_command(args))
         return {"table": res.table, "valid_set": res.valid_set, "scale_error": res.scale_error}
 
     def export() -> dict:
@@ -139,12 +160,17 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         state["addon"] = str(z)
         return {"zip": str(z)}
 
+    # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
+    train_options = {f"train.{k}": v for k, v in _flat(_scaled_config(args.iterations, args.train_config).to_dict()).items()}
     stages = [
-        Stage("generate", f"benchgen: render the {args.preset} benchmark", generate),
+        Stage("generate", f"benchgen: render the {args.preset} benchmark", generate,
+              {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}),
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", preprocess),
-        Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs", train),
-        Stage("sample", f"draw {args.n} valid configurations", sample),
-        Stage("evaluate", "best-of-N evaluation against every ground truth", evaluate),
+        Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs", train,
+              {"inputs": args.inputs, **train_options}),
+        Stage("sample", f"draw {args.n} valid configurations", sample,
+              {"n": args.n, "threshold": args.threshold, "seed": args.seed}),
+        Stage("evaluate", "best-of-N evaluation against every ground truth", evaluate, {"max_views": args.max_views}),
         Stage("export", "export volumes, meshes, trajectories and the scale network", export),
         Stage("addon", "build the Blender add-on zip", addon),
     ]
@@ -187,4 +213,4 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=float, default=0.5, help="validity threshold of sampling")
     p.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth (0 = all)")
     p.add_argument("--workers", type=int, default=2, help="rendering processes for benchgen")
-    p.add_argument("--seed", type=int, default=0, help="seed of sampling and export")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sampled configurations (the export carries those)")

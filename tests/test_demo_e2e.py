@@ -36,7 +36,10 @@ def test_outputs_are_sensible(demo):
     for row in table.values():
         assert all(np.isfinite(v[0]) for k, v in row.items() if k != "lpips") and 0 <= row["ssim"][0] <= 1
     assert 0.0 <= m["valid_set"]["iou"] <= 1.0 and m["extra"]["num_gt"] == 3
-    assert (demo / "report" / "report.md").read_text().count("![") >= 3
+    report = (demo / "report" / "report.md").read_text()
+    assert report.count("![") >= 3
+    row = next(ln for ln in report.splitlines() if ln.startswith("| training time"))
+    assert " dB / " in row  # the time is reported with what it bought (PSNR / IoU)
     assert all((demo / "report" / p).stat().st_size > 1000 for p in ("best_of_n.png", "training_curve.png"))
     stages = json.loads((demo / "stages.json").read_text())
     assert list(stages) == ["generate", "preprocess", "train", "sample", "evaluate", "export", "addon"]
@@ -54,6 +57,27 @@ def test_rerun_resumes_instead_of_starting_over(demo):
     r = subprocess.run([sys.executable, *DEMO, "--work", str(demo)], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.count("already done") == 7
+    # Another value of an option a finished stage depends on: one line, nothing reused or redone.
+    changed = [*DEMO[:DEMO.index("-n") + 1], "61", *DEMO[DEMO.index("-n") + 2:]]
+    before = (demo / "run" / "samples.npz").read_bytes()
+    r = subprocess.run([sys.executable, *changed, "--work", str(demo)], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 2 and "stage 'sample' was run with other options (n 60 -> 61)" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and (demo / "run" / "samples.npz").read_bytes() == before
+
+
+def test_report_command_reproduces_the_run(demo):
+    """The command written into report.md parses with `osn`'s own parser to the same options."""
+    import shlex
+
+    from osn.cli import build_parser
+
+    m = json.loads((demo / "report" / "metrics.json").read_text())
+    words = shlex.split(m["command"])
+    assert words[:2] == ["osn", "demo"]
+    args = build_parser().parse_args(words[1:])
+    assert (args.preset, args.iterations, args.n, args.max_views, args.workers) == ("tiny", 150, 60, 3, 1)
+    assert args.work == str(demo) and args.inputs == "oracle"
+    assert f"`{m['command']}`" in (demo / "report" / "report.md").read_text()
 
 
 def test_addon_imports_the_export(demo, tmp_path):
