@@ -157,6 +157,8 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         f"| evaluation time (ground truth, layered search, exact re-rank, metrics) | "
         f"{res.timings['ground_truth_s']:.0f} s, {res.timings['layered_search_s']:.0f} s, "
         f"{res.timings['exact_rerank_s']:.0f} s, {res.timings['metrics_s']:.0f} s |",
+        f"| ground truths outside the sampled scale box (Eq. 1; reachable only from its edge) | "
+        f"{e.get('gt_outside_scale_box', 0)} of {e['num_gt']} (at most {e.get('gt_outside_scale_box_max', 0.0):.3f} of a range beyond it) |",
         f"| samples rendered exactly | {e['candidates_rendered_exactly']} of {e['num_samples']} |",
         f"| layered estimate picks the same match | {100 * e['approx_match_agrees']:.0f}% of ground truths |",
         "",

@@ -101,6 +101,22 @@ def test_look_at_points_forward():
     assert C.rotation_angle_deg(T, T) == pytest.approx(0.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("deg", [0.5, 1.0, 30.0, 90.0, 179.0, 180.0])
+def test_rotation_angle_is_the_geodesic_angle(deg: float):
+    """The SfM accuracy figures rest on this: the angle of R_a^T R_b about any axis, in degrees,
+    symmetric and independent of a common rotation applied to both."""
+    rng = np.random.default_rng(int(deg * 10))
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = np.radians(deg)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K  # Rodrigues
+    Q = random_pose(rng)[:3, :3]
+    assert C.rotation_angle_deg(np.eye(3), R) == pytest.approx(deg, abs=1e-6)
+    assert C.rotation_angle_deg(R, np.eye(3)) == pytest.approx(deg, abs=1e-6)
+    assert C.rotation_angle_deg(Q, Q @ R) == pytest.approx(deg, abs=1e-6)
+
+
 def test_fit_pose_similarity_recovers_transform_even_for_collinear_centres():
     rng = np.random.default_rng(4)
     T = random_pose(rng)

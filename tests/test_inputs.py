@@ -55,6 +55,11 @@ def test_scale_conversions_and_ranges(oracle):
     assert np.allclose(I.normalise_scales(sbar, ranges), np.tile(s, (3, 1)).T)
     actual = np.array([1.0, 0.7, 1.3])
     assert np.allclose(inp.actual_scales(inp.true_scales(actual)), actual)
+    # Not just round trips: Eq. 1 is linear between the range ends, and sbar_k = s_k u_k / u_anchor.
+    assert np.allclose(I.denormalise_scales(np.full(3, 0.5), ranges), ranges.mean(axis=1))
+    assert np.allclose(I.denormalise_scales(np.full(3, 0.25), ranges), 0.75 * ranges[:, 0] + 0.25 * ranges[:, 1])
+    u = np.array([o.unit_to_world for o in inp.objects])
+    assert np.allclose(inp.true_scales(actual), actual * u / u[inp.anchor_pos])
     assert inp.true_scales(np.ones(3))[inp.anchor] == 1.0
 
 
@@ -105,10 +110,15 @@ def test_save_load_round_trip(oracle, tmp_path):
     assert back.source == "oracle" and back.num_objects == inp.num_objects
     assert np.array_equal(back.images, inp.images) and np.array_equal(back.masks, inp.masks)
     assert np.array_equal(back.world_to_anchor, inp.world_to_anchor)
+    assert np.array_equal(back.K, inp.K) and np.array_equal(back.timestamps, inp.timestamps)
+    assert (back.width, back.height, back.anchor) == (inp.width, inp.height, inp.anchor)
+    assert (back.scene_near, back.scene_far) == (inp.scene_near, inp.scene_far)
     for a, b in zip(back.objects, inp.objects):
-        assert np.array_equal(a.cam_to_obj, b.cam_to_obj) and a.near == b.near
-        assert all(np.array_equal(x, y) for x, y in zip(a.sparse_depth, b.sparse_depth))
-        assert all(np.array_equal(x, y) for x, y in zip(a.sparse_pix, b.sparse_pix))
+        assert (a.id, a.name, a.near, a.far, a.unit_to_world) == (b.id, b.name, b.near, b.far, b.unit_to_world)
+        assert np.array_equal(a.frames, b.frames) and np.array_equal(a.bbox, b.bbox)
+        assert np.array_equal(a.cam_to_obj, b.cam_to_obj)
+        for field in ("sparse_depth", "sparse_pix", "sparse_weight"):
+            assert all(np.array_equal(x, y) for x, y in zip(getattr(a, field), getattr(b, field)))
 
 
 def test_ignored_pixels_are_never_drawn_for_training(oracle):

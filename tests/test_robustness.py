@@ -699,3 +699,26 @@ def test_rendered_depth_is_infinite_where_nothing_is_hit(trained: Path) -> None:
     whole = float(M.ssimae(torch.from_numpy(layer["depth"]), torch.from_numpy(truth)))
     hit = float(M.ssimae(torch.from_numpy(layer["depth"]), torch.from_numpy(truth), torch.from_numpy(~empty)))
     assert whole == pytest.approx(hit, abs=1e-12) and whole < 1e-6
+
+
+def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_dataset: Path) -> None:
+    """Eq. 1's box does not know the benchmark's scale range: the tiny preset's configurations 1
+    and 2 put the ball 0.9% of its range below the box. Evaluation counts them (they can only be
+    approached from the edge) instead of letting that cap hide in the averages."""
+    from osn.evaluate import ground_truth_outside_box
+    from osn.run import load_run
+
+    run = load_run(trained)
+    scales = np.stack([c.scales for c in D.load_configurations(tiny_dataset)])
+    out = ground_truth_outside_box(run, scales)
+    # Independently: sbar_k = s_k u_k / u_anchor, normalised by Eq. 1's ranges.
+    units = np.array([o.unit_to_world for o in run.inputs.objects])
+    ids = [o.id for o in run.inputs.objects]
+    s = (scales[:, ids] * units / units[run.anchor_pos] - run.ranges[:, 0]) / (run.ranges[:, 1] - run.ranges[:, 0])
+    below = np.maximum(-s, 0).max(axis=1)
+    assert out["gt_outside_scale_box"] == int(np.sum(below > 0)) and out["gt_outside_scale_box"] >= 1
+    assert out["gt_outside_scale_box_max"] == pytest.approx(below.max())
+    inside = run.inputs.actual_scales(run.ranges.mean(axis=1))  # the box's centre, in dataset scales
+    full = np.ones((1, scales.shape[1]))
+    full[0, ids] = inside
+    assert ground_truth_outside_box(run, full) == {"gt_outside_scale_box": 0, "gt_outside_scale_box_max": 0.0}
