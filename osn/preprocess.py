@@ -554,9 +554,10 @@ def load_video(frames_dir: str | Path, masks_dir: str | Path) -> tuple[np.ndarra
             raise InputsError(f"{mp}: size {m.shape[::-1]} does not match frame {p} {img.shape[1::-1]} or the first frame")
         images.append(img)
         masks.append(m)
-    if not np.any((np.stack(masks) != 255) & (np.stack(masks) != IGNORE_ID)):
+    ids = np.stack(masks)
+    if not np.any((ids != 255) & (ids != IGNORE_ID)):
         raise InputsError(f"{masks_dir}: the masks hold no object id (every pixel is 255, no object)")
-    return np.stack(images), np.stack(masks), [p.name for p in files]
+    return np.stack(images), ids, [p.name for p in files]
 
 
 def intrinsics_from_args(intrinsics: str | None, fov: float | None, width: int, height: int) -> np.ndarray:
