@@ -1,13 +1,15 @@
 # Two entry points that do all the set-up on a fresh machine (Python 3.11, pip, make):
 #   make demo   sets up .venv and runs the main job on the embedded default scene
 #   make test   sets up .venv and runs the test suite
-# TORCH_SPEC chooses the torch to install when the venv has none (default: the CPU wheel
-# pinned below; a CUDA user can pass e.g. TORCH_SPEC="torch==2.13.0 --index-url ...").
+# TORCH_SPEC chooses the torch to install when the venv has no torch $(TORCH_VERSION) (default:
+# whatever pip finds for the pin; on this build machine a local CPU wheel. Elsewhere pass the
+# index: TORCH_SPEC="torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" or .../cu126).
 
 PYTHON ?= python3.11
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-TORCH_SPEC ?= torch==2.13.0
+TORCH_VERSION := 2.13.0
+TORCH_SPEC ?= torch==$(TORCH_VERSION)
 STAMP  := $(VENV)/.installed
 
 .PHONY: setup test demo addon clean-venv
@@ -17,9 +19,10 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml Makefile
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (Python 3.11 is required)"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@# Keep an already-installed torch (CPU or CUDA build of the pinned version); otherwise install
+	@# Keep an installed torch of the pinned version (CPU or CUDA build); otherwise install
 	@# TORCH_SPEC first, so pip never resolves torch itself (that would pull CUDA packages).
-	@$(PY) -c "import torch" >/dev/null 2>&1 || $(PY) -m pip install --quiet $(TORCH_SPEC)
+	@$(PY) -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '$(TORCH_VERSION)')" >/dev/null 2>&1 \
+		|| $(PY) -m pip install --quiet $(TORCH_SPEC)
 	$(PY) -m pip install --quiet -e ".[test]"
 	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared
 	@# torchvision would pull a CUDA torch; nothing imports it outside tests.

@@ -29,7 +29,7 @@ import torch
 
 from benchgen import dataset as D
 from . import metrics as M
-from .inputs import InputsError
+from .inputs import InputsError, normalise_scales
 from .run import TrainedRun
 from .scale_net import VALID_THRESHOLD
 
@@ -518,9 +518,7 @@ def ground_truth_outside_box(run: TrainedRun, scales: np.ndarray) -> dict[str, f
     caps best-of-N there. Reported so that cap is visible, not hidden in the averages.
     """
     ids = [o.id for o in run.inputs.objects]
-    sbar = run.inputs.true_scales(scales[:, ids])
-    lo, hi = run.ranges[:, 0], run.ranges[:, 1]
-    s = (sbar - lo) / (hi - lo)
+    s = normalise_scales(run.inputs.true_scales(scales[:, ids]), run.ranges)
     free = [k for k in range(len(ids)) if k != run.anchor_pos]
     dist = np.maximum(np.maximum(-s[:, free], s[:, free] - 1.0), 0.0).max(axis=1) if free else np.zeros(len(s))
     return {"gt_outside_scale_box": int(np.sum(dist > 0)), "gt_outside_scale_box_max": float(dist.max(initial=0.0))}

@@ -464,22 +464,25 @@ def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress
 
 
 def align_to_ground_truth(
-    inputs: SceneInputs, oracle: SceneInputs, report: PreprocessReport, scene: D.Scene, depths: np.ndarray | None = None
+    inputs: SceneInputs, oracle: SceneInputs, report: PreprocessReport, scene: D.Scene, depths: np.ndarray
 ) -> None:
-    """Fill units, world-to-anchor and accuracy figures by aligning SfM to the oracle poses.
+    """Fill units, world-to-anchor and accuracy figures from ground truth.
 
-    Per object, a similarity maps the SfM camera poses (object frame) onto the ground-truth ones
+    Each object's metres per SfM unit is the median of ``depths (T, H, W)``, the rendered
+    ground-truth planar depth, over SfM depth at its sparse points. A similarity per object maps
+    the SfM camera poses (object frame) onto the ground-truth ones
     (:func:`benchgen.cameras.fit_pose_similarity`); rotation and camera-centre errors are
-    measured after it. The metres per SfM unit come from ``depths (T, H, W)``, the rendered
-    ground-truth planar depth, when given: the median of true depth over SfM depth at the sparse
-    points. The similarity's scale is biased low by noisy camera centres (least squares shrinks
-    toward the mean: on the tests' 128 px scene it made the block's unit 0.41 of the true one,
-    which skews every scale-based evaluation figure); depths measure the unit directly. Both
-    are reported (``unit_from_depth``, ``similarity_unit_ratio``).
+    measured after it. Its scale is not used as the unit: least squares on noisy camera centres
+    shrinks it (on the tests' 128 px scene the block's came out 0.41 of the truth, which skewed
+    every scale-based evaluation figure); its ratio to the depth unit is reported
+    (``similarity_unit_ratio``). An object whose similarity cannot be fitted still gets its unit.
     """
     by_id = {o.id: o for o in oracle.objects}
     for o, rep in zip(inputs.objects, [r for r in report.objects if "error" not in r]):
         gt = by_id[o.id]
+        o.unit_to_world = depth_unit(o, depths)
+        if o.unit_to_world is None:
+            rep["unit"] = "not measurable: no sparse point has a finite ground-truth depth"
         slots = [gt.frame_slot(int(t)) for t in o.frames]
         keep = [i for i, s in enumerate(slots) if s is not None]
         gt_poses = gt.cam_to_obj[[slots[i] for i in keep]]
@@ -490,16 +493,8 @@ def align_to_ground_truth(
             continue
         scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
         R = S[:3, :3] / scale
-        o.unit_to_world = scale * gt.unit_to_world
-        if depths is not None:
-            ratio = np.concatenate([
-                depths[int(t)][pix[:, 1], pix[:, 0]] / dep for t, pix, dep in zip(o.frames, o.sparse_pix, o.sparse_depth)
-            ])
-            ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
-            if len(ratio):
-                unit = float(np.median(ratio))
-                rep.update(unit_from_depth=True, similarity_unit_ratio=o.unit_to_world / unit)
-                o.unit_to_world = unit
+        if o.unit_to_world is not None:
+            rep["similarity_unit_ratio"] = scale * gt.unit_to_world / o.unit_to_world
         c_sfm, c_gt = o.cam_to_obj[keep, :3, 3], gt_poses[:, :3, 3]
         rot = [rotation_angle_deg(R @ o.cam_to_obj[i, :3, :3], gt.cam_to_obj[slots[i], :3, :3]) for i in keep]
         aligned = c_sfm @ S[:3, :3].T + S[:3, 3]
@@ -525,6 +520,16 @@ def align_to_ground_truth(
         for rep in report.objects:
             if rep.get("id") == anchor.id:
                 rep["test_view_alignment"] = f"failed: {e}"
+
+
+def depth_unit(obj: ObjectInputs, depths: np.ndarray) -> float | None:
+    """Metres per unit of ``obj``: the median of ground-truth planar depth ``depths (T, H, W)``
+    over the object's sparse depths at the same pixels (None without a usable point)."""
+    ratio = np.concatenate([
+        depths[int(t)][pix[:, 1], pix[:, 0]] / dep for t, pix, dep in zip(obj.frames, obj.sparse_pix, obj.sparse_depth)
+    ] or [np.zeros(0)])
+    ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
+    return float(np.median(ratio)) if len(ratio) else None
 
 
 def load_video(frames_dir: str | Path, masks_dir: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:

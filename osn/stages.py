@@ -3,7 +3,8 @@
 A stage is done when its marker ``.done/<name>.json`` exists; the marker is written atomically
 after the stage's own outputs, so a killed job re-runs only the stage it was in (which is itself
 resumable). ``stages.json`` collects every stage's wall time, summed over the invocations that
-worked on it, so error can be put next to time.
+worked on it (a ``kill -9`` loses the killed invocation's share: only a normal end, an
+exception or Ctrl-C records it), so error can be put next to time.
 
 Each stage names the options its outputs depend on. They are recorded when the stage starts; a
 later call with different values stops with one line instead of skipping (or resuming) the

@@ -37,7 +37,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -118,15 +118,19 @@ class TrainConfig:
                      "free_band", "label_rays", "label_erode", "label_stride")
 
     def __post_init__(self) -> None:
+        def check(name: str, kind: type | tuple[type, ...], ok: Callable[[Any], bool], what: str) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, kind) or not ok(v):
+                raise ValueError(f"training config: {name} must be {what}, got {v!r}")
+
         for name in self._POSITIVE:
-            if not getattr(self, name) >= 1:
-                raise ValueError(f"training config: {name} must be >= 1, got {getattr(self, name)!r}")
+            check(name, int, lambda v: v >= 1, "an integer >= 1")
         for name in self._NON_NEGATIVE:
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"training config: {name} must be >= 0, got {getattr(self, name)!r}")
-        for name in ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc", "valid_threshold"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"training config: {name} must lie in [0, 1], got {getattr(self, name)!r}")
+            check(name, int, lambda v: v >= 0, "an integer >= 0")
+        for name in ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc"):
+            check(name, (int, float), lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]")
+        # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
+        check("valid_threshold", (int, float), lambda v: 0.0 <= v < 1.0, "a number in [0, 1)")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
@@ -379,6 +383,14 @@ class Trainer:
             self.net_opt.load_state_dict(s["net_opt"])
         self.gen.set_state(s["gen"].cpu())
         torch.set_rng_state(s["torch_rng"].cpu())
+
+    def non_finite_parameters(self) -> list[str]:
+        """Which models hold a NaN or infinite weight (``field <id>``, ``scale network``)."""
+        bad = [f"field {o.id}" for o, f in zip(self.st.inputs.objects, self.fields)
+               if not all(bool(torch.isfinite(p).all()) for p in f.parameters())]
+        if self.net is not None and not all(bool(torch.isfinite(p).all()) for p in self.net.parameters()):
+            bad.append("scale network")
+        return bad
 
     def phase(self, it: int) -> Phase:
         return next(p for p in self.schedule if p.start <= it < p.end)
@@ -737,7 +749,8 @@ def _save_checkpoint(path: Path, trainer: Trainer) -> None:
 
 
 class TrainingDiverged(UserError):
-    """A loss became NaN or infinite; the message names the run, iteration, phase and loss."""
+    """A loss or a weight became NaN or infinite; the message names the run, iteration, phase
+    and what diverged. Checked before every checkpoint, so the last one written stays finite."""
 
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:
@@ -840,6 +853,12 @@ def train(
                 fh.write(json.dumps(rec) + "\n")
             bar.set_postfix(phase=ph.name, psnr=f"{rec['psnr']:.2f}", iou=f"{rec.get('iou', float('nan')):.3f}")
         if it % cfg.checkpoint_every == 0 or it == stop:
+            bad_params = trainer.non_finite_parameters()
+            if bad_params:  # an update can blow the weights up while the step's loss was finite
+                raise TrainingDiverged(
+                    f"{out}: training diverged at iteration {it} ({ph.name} phase): non-finite weights in "
+                    f"{', '.join(bad_params)}; the last checkpoint is kept (lower field.lr_grid / scale_lr, or check the inputs)"
+                )
             _save_checkpoint(ckpt, trainer)
         bar.update(1)
     bar.close()

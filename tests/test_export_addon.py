@@ -293,6 +293,7 @@ MALFORMED_FIELDS = [
     (("files",), "arrays.npz", "'files' must be a list"),
     (("scale_network", "threshold"), "high", "scale_network: threshold"),
     (("scale_network", "layers"), "2", "scale_network: layers"),
+    (("objects", 2, "id"), 1, "object 2: id 1 is used by another object"),
 ]
 
 
@@ -367,7 +368,9 @@ def test_addon_manifest_declares_file_access(tmp_path: Path) -> None:
 def test_import_builds_objects_cameras_and_loads_volumes(blender, exported) -> None:
     res, _ = blender
     assert res["enabled"]
-    # A scripted/dropped call naming the manifest imports at once; without a path, the browser opens.
+    # The real operator's invoke inside Blender: a call naming the manifest imports at once,
+    # one without a path opens the browser. (Scripted calls never reuse remembered properties,
+    # so the remembered-path case is covered by the stand-in operator test above, not here.)
     assert res["invoke"] == {"set": ["import"], "unset": ["browser"]}
     assert res["osn_objects"] == ["wall", "sphere1", "sphere2"]
     assert sorted(res["children"]["sphere1"]) == ["MESH", "VOLUME"]

@@ -133,3 +133,8 @@ def test_ignored_pixels_are_never_drawn_for_training(oracle):
     assert st.usable is not None and not torch.any(flat_masks[st.usable] == I.IGNORE_ID)
     assert len(st.usable) == int((flat_masks != I.IGNORE_ID).sum())
     assert len(st.obj_pixels[2]) == 0  # and no object claims them
+    # Nor are they scored: training PSNR is measured on trainable pixels only.
+    from osn.train import Evaluator, TrainConfig, Trainer
+
+    ev = Evaluator(Trainer(inp, TrainConfig(eval_pixels=10**6), torch.device("cpu")), None)
+    assert len(ev.flat) == len(st.usable) and not torch.any(flat_masks[ev.flat] == I.IGNORE_ID)

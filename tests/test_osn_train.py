@@ -86,7 +86,8 @@ def test_resume_refuses_to_overwrite_and_needs_a_checkpoint(tiny_dataset: Path, 
 
 
 @pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
-                                 {"valid_threshold": 1.5}])
+                                 {"valid_threshold": 1.5}, {"valid_threshold": 1.0}, {"rounds": "five"},
+                                 {"label_replay": "high"}])
 def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
     (key, value), = bad.items()
     with pytest.raises(ValueError, match=f"{key} must"):
@@ -110,7 +111,7 @@ def test_single_object_skips_the_scale_network(tiny_dataset: Path, tmp_path: Pat
 
 def test_field_phase_survives_an_untrained_network(tiny_dataset: Path, caplog) -> None:
     """No candidate above the threshold: the best one is used, a warning is logged, no crash."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(valid_threshold=1.0), torch.device("cpu"))
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(valid_threshold=0.999999), torch.device("cpu"))
     with caplog.at_level(logging.WARNING):
         out = tr.step_fields()
     assert np.isfinite(out["rgb"]) and np.isfinite(out["seg"]) and tr.fallbacks == 1
@@ -374,6 +375,20 @@ def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
     state = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
     assert state["iteration"] == 25
     assert all(torch.isfinite(v).all() for sd in state["fields"] for v in sd.values())
+
+    # Weights that turn NaN in an update whose loss was still finite (after the step of
+    # iteration 24): the checkpoint of iteration 25 is refused, not written with NaNs.
+    def poisoned_after(self: Trainer) -> dict[str, float]:
+        losses = real(self)
+        if self.iteration == 24:
+            with torch.no_grad():
+                self.fields[1].grid.fill_(float("nan"))
+        return losses
+
+    monkeypatch.setattr(Trainer, "step_stage1", poisoned_after)
+    with pytest.raises(TrainingDiverged, match=r"r2: training diverged at iteration 25 .*non-finite weights in field"):
+        train(tiny_dataset, tmp_path / "r2", _cfg(), progress=False)
+    assert not (tmp_path / "r2" / "checkpoint.pt").exists()
 
 
 @pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0}])

@@ -231,3 +231,34 @@ def test_isoluminant_object_registers_on_its_colour_axis(sfm_scene):
     R = S[:3, :3] / np.cbrt(np.linalg.det(S[:3, :3]))
     errors = [rotation_angle_deg(R @ a[:3, :3], b[:3, :3]) for a, b in zip(sfm.cam_to_obj, poses)]
     assert max(errors) < 10.0, errors  # the ball in its own colours: 6.6 degrees at 128 px
+
+
+def test_alignment_fallbacks_keep_the_unit_and_say_what_failed(tiny_dataset, monkeypatch):
+    """Units come from depths, so an object whose pose similarity cannot be fitted (noisy SfM
+    centres give a negative scale) still gets its unit; a failed test-view alignment leaves no
+    world-to-anchor and says so. The depth unit of exact (oracle) inputs is the true unit."""
+    import copy
+
+    from benchgen import dataset as D
+    from osn.inputs import OracleConfig, oracle_inputs
+
+    oracle = oracle_inputs(tiny_dataset, OracleConfig(min_pixels=1, points_per_frame=1))
+    scene = D.load_scene(tiny_dataset)
+    names = {f.time_index: f.name for f in scene.train_frames}
+    depths = np.stack([D.read_depth(D.frame_paths(tiny_dataset, names[t]).depth) for t in range(len(oracle.timestamps))])
+    sfm = copy.deepcopy(oracle)
+    for o in sfm.objects:
+        o.unit_to_world = None
+    report = P.PreprocessReport(objects=[{"id": o.id, "name": o.name} for o in sfm.objects])
+
+    def refuse(src, dst):
+        raise ValueError("fit_pose_similarity: camera centres give a negative scale (poses disagree)")
+
+    monkeypatch.setattr(P, "fit_pose_similarity", refuse)
+    P.align_to_ground_truth(sfm, oracle, report, scene, depths)
+    for o, g, rep in zip(sfm.objects, oracle.objects, report.objects):
+        assert o.unit_to_world == pytest.approx(g.unit_to_world, rel=1e-6)
+        assert rep["alignment"].startswith("not measurable: fit_pose_similarity: camera centres give a negative scale")
+    assert sfm.world_to_anchor is None
+    assert report.objects[0]["test_view_alignment"].startswith("failed:")
+    assert "no world-to-anchor alignment" in sfm.ground_truth_problem()
