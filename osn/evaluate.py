@@ -375,8 +375,7 @@ def validity_profile(run: TrainedRun, region, sbar_ref: np.ndarray, k: int, poin
     lo, hi = run.ranges[k]
     line = np.repeat(sbar_ref[None], points, 0)
     line[:, k] = np.linspace(lo, hi, points)
-    s_free = (line - run.ranges[:, 0]) / (run.ranges[:, 1] - run.ranges[:, 0])
-    s_free = np.delete(s_free, run.anchor_pos, axis=1)
+    s_free = np.delete(normalise_scales(line, run.ranges), run.anchor_pos, axis=1)
     actual = run.inputs.actual_scales(line)
     full = np.ones((points, region.num_objects))
     full[:, [o.id for o in run.inputs.objects]] = actual

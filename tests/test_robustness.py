@@ -722,3 +722,30 @@ def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_d
     full = np.ones((1, scales.shape[1]))
     full[0, ids] = inside
     assert ground_truth_outside_box(run, full) == {"gt_outside_scale_box": 0, "gt_outside_scale_box_max": 0.0}
+
+
+def test_validity_profile_walks_one_scale_through_its_range(trained: Path, tiny_dataset: Path) -> None:
+    """The report's validity profile: object k's scale runs over its whole Eq. 1 range (in
+    dataset scales), the others stay at the reference; scores are the network's at exactly
+    those vectors, and the exact flags are the region's own verdicts there."""
+    from osn.evaluate import validity_profile
+    from osn.run import load_run
+
+    run = load_run(trained)
+    region = D.load_valid_region(tiny_dataset)
+    ref = run.inputs.true_scales(np.ones(run.inputs.num_objects))  # the authored configuration
+    k = next(i for i in range(run.inputs.num_objects) if i != run.anchor_pos)
+    prof = validity_profile(run, region, ref, k, points=41)
+    units = np.array([o.unit_to_world for o in run.inputs.objects])
+    lo, hi = run.ranges[k] * units[run.anchor_pos] / units[k]  # sbar -> dataset scale of object k
+    assert prof["actual_scale"][0] == pytest.approx(lo) and prof["actual_scale"][-1] == pytest.approx(hi)
+    assert np.all(np.diff(prof["actual_scale"]) > 0)
+    line = np.repeat(ref[None], 41, 0)
+    line[:, k] = np.linspace(*run.ranges[k], 41)
+    s_free = np.delete((line - run.ranges[:, 0]) / (run.ranges[:, 1] - run.ranges[:, 0]), run.anchor_pos, axis=1)
+    np.testing.assert_allclose(run.sbar(s_free), line, rtol=1e-12)
+    np.testing.assert_allclose(prof["score"], run.scores(s_free))
+    full = np.ones((41, region.num_objects))
+    full[:, [o.id for o in run.inputs.objects]] = line * units[run.anchor_pos] / units
+    assert np.array_equal(prof["exact"], region.contains(full))
+    assert prof["exact"].any() and not prof["exact"].all()  # the valid interval is inside the range
