@@ -525,6 +525,13 @@ def write_frame(
     return paths
 
 
+def read_training_video(root: str | Path, scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The training video in time order, checked against ``scene``: ``rgb (T,H,W,3)``,
+    ``depth (T,H,W)`` and ``ids (T,H,W)`` (see :func:`read_frame`)."""
+    frames = [read_frame(root, f.name, scene=scene) for f in sorted(scene.train_frames, key=lambda f: f.time_index)]
+    return tuple(np.stack(a) for a in zip(*frames))  # type: ignore[return-value]
+
+
 def read_frame(
     root: str | Path, frame_name: str, config: int | None = None, scene: Scene | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

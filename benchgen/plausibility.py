@@ -26,6 +26,12 @@ from .spec import SpecError
 ROOM_TOLERANCE = 1e-6
 
 
+def _outside_room(built: BuiltScene, point: np.ndarray) -> bool:
+    """Whether ``point`` (world) is not strictly inside the room box, up to ``ROOM_TOLERANCE``."""
+    lo, hi = built.room_box
+    return bool(np.any(point <= lo - ROOM_TOLERANCE) or np.any(point >= hi + ROOM_TOLERANCE))
+
+
 def room_scale_limits(built: BuiltScene) -> np.ndarray:
     """``(K,)`` largest scale of each object that keeps all its vertices in the room at every t.
 
@@ -35,7 +41,7 @@ def room_scale_limits(built: BuiltScene) -> np.ndarray:
     lo, hi = lo - ROOM_TOLERANCE, hi + ROOM_TOLERANCE
     centers = built.scene.training_camera_centers()
     for t, c in enumerate(centers):
-        if np.any(c <= lo) or np.any(c >= hi):
+        if _outside_room(built, c):
             raise SpecError(f"{built.spec.source}: rig: the training camera at time index {t} is outside the room")
     limits = np.ones(len(built.objects))
     for k in range(1, len(built.objects)):
@@ -97,10 +103,8 @@ def check_authored_scene(built: BuiltScene) -> None:
     """
     limits = room_scale_limits(built)
     src = built.spec.source
-    lo, hi = built.room_box
     for f in built.scene.test_frames:
-        c = f.camera_to_world[:3, 3]
-        if np.any(c <= lo - ROOM_TOLERANCE) or np.any(c >= hi + ROOM_TOLERANCE):
+        if _outside_room(built, f.camera_to_world[:3, 3]):
             raise SpecError(f"{src}: rig: the test camera of frame {f.name} is outside the room")
     for k in range(1, len(built.objects)):
         if limits[k] < 1.0:

@@ -67,7 +67,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     work = Path(args.work)
     dataset, sfm, oracle_dir, run_dir = work / "dataset", work / "sfm", work / "oracle", work / "run"
     report_dir, export_dir = work / "report", work / "export"
-    state: dict[str, Any] = {}
+    train_cfg = _scaled_config(args.iterations, args.train_config)  # also what the train stage depends on
 
     def generate() -> dict:
         from benchgen.generate import generate as gen
@@ -120,9 +120,8 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         from .train import train as train_run
 
         resume = (run_dir / "checkpoint.pt").exists()
-        cfg = _scaled_config(args.iterations, args.train_config)
         inputs = None if resume else load_inputs(sfm if args.inputs == "colmap" else oracle_dir)
-        train_run(dataset, run_dir, cfg, resume=resume, inputs=inputs)
+        train_run(dataset, run_dir, train_cfg, resume=resume, inputs=inputs)
         last = read_metrics(run_dir / "metrics.jsonl")[-1]
         print(f"  training: PSNR {last.get('psnr', float('nan')):.2f} dB, valid-set IoU {last.get('iou', float('nan')):.3f} "
               f"after {last['wall_time']:.0f} s")
@@ -157,11 +156,10 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         from .addon_build import build_addon_zip
 
         z = build_addon_zip(work)
-        state["addon"] = str(z)
         return {"zip": str(z)}
 
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
-    train_options = {f"train.{k}": v for k, v in _flat(_scaled_config(args.iterations, args.train_config).to_dict()).items()}
+    train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
     stages = [
         Stage("generate", f"benchgen: render the {args.preset} benchmark", generate,
               {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}),

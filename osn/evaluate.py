@@ -161,9 +161,8 @@ def load_ground_truth(root: str | Path, max_views: int = 0) -> GroundTruth:
     configs = D.load_configurations(root, scene)
     if not configs:
         raise ValueError(f"{root}: the dataset has no ground-truth configurations")
-    train = sorted(scene.train_frames, key=lambda f: f.time_index)
-    tr = [D.read_frame(root, f.name, scene=scene) for f in train]
-    t_c2w = np.stack([f.camera_to_world for f in train])
+    _, t_depth, t_ids = D.read_training_video(root, scene)
+    t_c2w = np.stack([f.camera_to_world for f in sorted(scene.train_frames, key=lambda f: f.time_index)])
     K = scene.intrinsics.matrix()
     G, V = len(configs), len(test)
     rgb = np.zeros((G, V, scene.height, scene.width, 3), np.uint8)
@@ -171,7 +170,7 @@ def load_ground_truth(root: str | Path, max_views: int = 0) -> GroundTruth:
     ids = np.zeros((G, V, scene.height, scene.width), np.uint8)
     mask = np.zeros((G, V, scene.height, scene.width), bool)
     for g, cfg in enumerate(configs):
-        t_depths = [M.configured_depth(d, i, cfg.scales) for _, d, i in tr]
+        t_depths = [M.configured_depth(d, i, cfg.scales) for d, i in zip(t_depth, t_ids)]
         for v, f in enumerate(test):
             rgb[g, v], depth[g, v], ids[g, v] = D.read_frame(root, f.name, g, scene=scene)
             mask[g, v] = M.covisibility_mask(

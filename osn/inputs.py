@@ -410,21 +410,23 @@ class OracleConfig:
     seed: int = 0
 
 
-def oracle_inputs(dataset_root: str | Path, cfg: OracleConfig | None = None) -> SceneInputs:
-    """Derive per-object inputs from a benchgen dataset's ground truth (see module docstring)."""
+def oracle_inputs(
+    dataset_root: str | Path,
+    cfg: OracleConfig | None = None,
+    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> SceneInputs:
+    """Derive per-object inputs from a benchgen dataset's ground truth (see module docstring).
+
+    ``video``: the dataset's :func:`benchgen.dataset.read_training_video`, when the caller has
+    read it already (it is read here otherwise).
+    """
     cfg = cfg or OracleConfig()
     root = Path(dataset_root)
     scene = D.load_scene(root)
     rng = np.random.default_rng(cfg.seed)
     T = len(scene.timestamps)
     train = sorted(scene.train_frames, key=lambda f: f.time_index)
-    images, depths, masks = [], [], []
-    for f in train:
-        rgb, depth, ids = D.read_frame(root, f.name, scene=scene)  # names a bad size or unknown id
-        images.append(rgb)
-        depths.append(depth)
-        masks.append(ids)
-    images_a, depths_a, masks_a = np.stack(images), np.stack(depths), np.stack(masks)
+    images_a, depths_a, masks_a = video if video is not None else D.read_training_video(root, scene)  # names bad files
     K = scene.intrinsics.matrix()
     c2w = np.stack([f.camera_to_world for f in train])
 

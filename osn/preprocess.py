@@ -449,15 +449,14 @@ def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress
     object's unit and the world-to-anchor similarity (needed to place test cameras).
     """
     root = Path(dataset_root)
-    oracle = oracle_inputs(root, OracleConfig(min_pixels=1, points_per_frame=1))
     scene = D.load_scene(root)
+    video = D.read_training_video(root, scene)
+    oracle = oracle_inputs(root, OracleConfig(min_pixels=1, points_per_frame=1), video)
     names = {o.id: o.name for o in scene.objects}
     inputs, report = preprocess_video(
         oracle.images, oracle.masks, oracle.K, oracle.timestamps, names, scene.anchor_id, cfg, progress
     )
-    names_by_t = {f.time_index: f.name for f in scene.train_frames}
-    depths = np.stack([D.read_depth(D.frame_paths(root, names_by_t[t]).depth) for t in range(len(oracle.timestamps))])
-    align_to_ground_truth(inputs, oracle, report, scene, depths)
+    align_to_ground_truth(inputs, oracle, report, scene, depths=video[1])
     inputs.meta["dataset"] = str(root)
     check_inputs(inputs, root)
     return inputs, report

@@ -49,13 +49,6 @@ def _save_fig(fig, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def training_curve(metrics_jsonl: Path) -> list[dict[str, Any]]:
-    """The training run's metric records (lines cut by a kill are skipped)."""
-    from .train import read_metrics
-
-    return read_metrics(metrics_jsonl)
-
-
 def write_plots(res: EvalResult, train_log: list[dict[str, Any]], out: Path) -> list[str]:
     """PNG plots; returns their file names."""
     import matplotlib
@@ -131,7 +124,9 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
     """Write ``report.md``, ``metrics.json`` and the plots to ``out_dir``; returns the report path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    train_log = training_curve(run_dir / "metrics.jsonl")
+    from .train import read_metrics
+
+    train_log = read_metrics(run_dir / "metrics.jsonl")  # lines cut by a kill are skipped
     plots = write_plots(res, train_log, out)
     train_s = train_log[-1]["wall_time"] if train_log else float("nan")
     atomic_write_json(out / "metrics.json", {**asdict(res), "train_seconds": train_s, "command": command})
@@ -158,7 +153,7 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         f"{res.timings['ground_truth_s']:.0f} s, {res.timings['layered_search_s']:.0f} s, "
         f"{res.timings['exact_rerank_s']:.0f} s, {res.timings['metrics_s']:.0f} s |",
         f"| ground truths outside the sampled scale box (Eq. 1; reachable only from its edge) | "
-        f"{e.get('gt_outside_scale_box', 0)} of {e['num_gt']} (at most {e.get('gt_outside_scale_box_max', 0.0):.3f} of a range beyond it) |",
+        f"{e['gt_outside_scale_box']} of {e['num_gt']} (at most {e['gt_outside_scale_box_max']:.3f} of a range beyond it) |",
         f"| samples rendered exactly | {e['candidates_rendered_exactly']} of {e['num_samples']} |",
         f"| layered estimate picks the same match | {100 * e['approx_match_agrees']:.0f}% of ground truths |",
         "",

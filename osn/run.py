@@ -38,6 +38,7 @@ class CheckpointError(ValueError):
 #: ``depth / acc`` of a nearly empty ray is noise (opacity 1e-7 turns a depth of 2 into 0.2).
 EMPTY_ACC = 1e-4
 
+
 @dataclass
 class TrainedRun:
     """Everything needed to score and render configurations of a trained model."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import logging
 
+from typing import Callable
+
 import torch
 from torch import nn
 
@@ -69,18 +71,31 @@ def sample_valid(
     candidates: int = 256,
     threshold: float = 0.95,
     warn: bool = True,
+    near: Callable[[int], torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, float, bool]:
     """Draw one scale vector the network deems valid (score > ``threshold``).
 
     Uniform candidates in [0, 1)^(K-1); one of those above the threshold is picked uniformly.
-    When none passes, the best-scoring candidate is used and a warning is logged (unless
-    ``warn`` is False because the caller counts fallbacks): this never raises. Returns ``(sbar (K,), s_free (K-1,), score, fell_back)``.
+    When none passes and ``near`` is given, ``near(candidates)`` supplies a second set (e.g.
+    around vectors labelled valid before: the valid share of the box shrinks exponentially with
+    the object count, so uniform candidates can all miss it) and one of those that pass is
+    picked; the uniform draw, which covers the whole valid set, stays the rule. When none
+    passes, the best-scoring candidate is used and a warning is logged (unless ``warn`` is
+    False because the caller counts fallbacks): this never raises. Returns
+    ``(sbar (K,), s_free (K-1,), score, fell_back)``.
     """
     dev = ranges.device
     s = torch.rand(candidates, net.num_free, generator=generator, device=generator.device).to(dev)
     with torch.no_grad():
         p = net.prob(s)
     ok = torch.nonzero(p > threshold)[:, 0]
+    if not len(ok) and near is not None:
+        s2 = near(candidates).to(dev)
+        with torch.no_grad():
+            p2 = net.prob(s2)
+        ok2 = torch.nonzero(p2 > threshold)[:, 0]
+        if len(ok2):
+            s, p, ok = s2, p2, ok2
     if len(ok):
         i = ok[torch.randint(len(ok), (1,), generator=generator, device=generator.device).to(dev)][0]
         fell_back = False

@@ -463,21 +463,12 @@ class Trainer:
         """One valid scale vector ``(K,)`` for a composite step (anchor = 1; single object = [1])."""
         if self.net is None:
             return torch.ones(1, dtype=torch.float64, device=self.device), 1.0
+        # With many objects uniform candidates can all miss the valid set (gnome-house's is 1.4%
+        # of the box with 3 free objects); then candidates around remembered valid vectors.
         sbar, _, p, fell_back = sample_valid(
-            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False
+            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False,
+            near=self._near_positives if len(self.positives) else None,
         )
-        if fell_back and len(self.positives):
-            # The valid share of the box shrinks exponentially with the object count (gnome-house:
-            # 1.4% with 3 free objects), so uniform candidates can all miss it; candidates around
-            # vectors the scale phase labelled valid find it. Only then: the uniform draw, which
-            # covers the whole valid set, stays the rule.
-            near = self._near_positives(self.cfg.candidates).to(self.device)
-            with torch.no_grad():
-                scores = self.net.prob(near)
-            ok = torch.nonzero(scores > self.cfg.valid_threshold)[:, 0].cpu()
-            if len(ok):
-                i = int(ok[torch.randint(len(ok), (1,), generator=self.gen)][0])
-                sbar, p, fell_back = full_sbar(near[i : i + 1], self.st.ranges, self.st.anchor)[0], float(scores[i]), False
         if fell_back and self.fallbacks == 0:
             log.warning("no candidate scored above %.2f (best %.3f): field steps use the best one; "
                         "the count is in metrics.jsonl ('fallbacks')", self.cfg.valid_threshold, p)
@@ -752,6 +743,11 @@ class TrainingDiverged(UserError):
     """A loss or a weight became NaN or infinite; the message names the run, iteration, phase
     and what diverged. Checked before every checkpoint, so the last one written stays finite."""
 
+    @classmethod
+    def at(cls, out: Path, iteration: int, phase: Phase, what: str) -> "TrainingDiverged":
+        return cls(f"{out}: training diverged at iteration {iteration} ({phase.name} phase): {what}; "
+                   "the last checkpoint is kept (lower field.lr_grid / scale_lr, or check the inputs)")
+
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:
     """The records of a run's ``metrics.jsonl`` (empty if absent). A line cut by a kill
@@ -832,10 +828,7 @@ def train(
         losses = trainer.step()
         bad = sorted(k for k, v in losses.items() if not math.isfinite(v))
         if bad:  # stop before a NaN reaches a checkpoint; the last good one stays resumable
-            raise TrainingDiverged(
-                f"{out}: training diverged at iteration {trainer.iteration} ({ph.name} phase): loss {', '.join(bad)} is "
-                f"{losses[bad[0]]}; the last checkpoint is kept (lower field.lr_grid / scale_lr, or check the inputs)"
-            )
+            raise TrainingDiverged.at(out, trainer.iteration, ph, f"loss {', '.join(bad)} is {losses[bad[0]]}")
         for key, v in losses.items():
             acc.setdefault(key, []).append(v)
         it = trainer.iteration
@@ -855,10 +848,7 @@ def train(
         if it % cfg.checkpoint_every == 0 or it == stop:
             bad_params = trainer.non_finite_parameters()
             if bad_params:  # an update can blow the weights up while the step's loss was finite
-                raise TrainingDiverged(
-                    f"{out}: training diverged at iteration {it} ({ph.name} phase): non-finite weights in "
-                    f"{', '.join(bad_params)}; the last checkpoint is kept (lower field.lr_grid / scale_lr, or check the inputs)"
-                )
+                raise TrainingDiverged.at(out, it, ph, f"non-finite weights in {', '.join(bad_params)}")
             _save_checkpoint(ckpt, trainer)
         bar.update(1)
     bar.close()

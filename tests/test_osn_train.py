@@ -329,7 +329,7 @@ def test_resume_refuses_a_new_config_or_inputs(tmp_path) -> None:
 def test_metrics_reader_skips_a_line_cut_by_a_kill(tmp_path: Path) -> None:
     """The report and the CLI summary read metrics.jsonl after a kill mid-write: the cut line
     (and anything that is not a record) is skipped instead of failing the whole evaluation."""
-    from osn.report import training_curve
+    from osn.train import read_metrics as training_curve  # what the report and the CLI read with
 
     path = tmp_path / "metrics.jsonl"
     path.write_text('{"iteration": 20, "psnr": 20.5}\n[1, 2]\n\n{"iteration": 40, "psnr": 21.0}\n{"iteration": 60, "ps')
