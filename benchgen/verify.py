@@ -2,11 +2,12 @@
 
 A configuration passes when its re-rendered training frames reproduce the base video (interior
 pixels within ``TRAIN_MAX_INTERIOR_DIFF`` in linear RGB, at most ``TRAIN_MAX_DIFFERING_FRACTION``
-of all pixels off by more than 1/255, instance ids identical) and its test views differ from
+of all pixels off by more than 1/255 or showing another instance id, instance ids identical
+away from silhouettes) and its test views differ from
 configuration 0's on at least ``TEST_MIN_DIFFERING_FRACTION`` of the pixels where an object whose
 scale differs from configuration 0's is seen (so the configurations are really different scenes).
-Every pixel is the pixel-centre ray (``benchgen.render``), so identical ids on every pixel already
-prove that no visibility order flipped; the colour checks confirm that shading is local. Float
+Every pixel is the pixel-centre ray (``benchgen.render``), so identical ids away from silhouettes
+prove that no visibility order flipped (a ray grazing a silhouette may flip by rounding); the colour checks confirm that shading is local. Float
 rounding of a rescaled object's hit points is amplified by ``1 / cos`` of the incidence angle, so
 silhouettes and grazing hits (outside ``interior_mask``) get the pixel budget, not the 1e-4 limit.
 So do crease hits: where two parts of one object intersect, the normal is discontinuous and
@@ -72,10 +73,14 @@ def compare_training(
     interior = interior_mask(base_ids, base_facing)
     if base_facing is not None and facing is not None:
         interior &= np.abs(facing.astype(np.float64) - base_facing) <= CREASE_FACING_CHANGE
+    id_diff = ids != base_ids
     return {
         "max_interior_diff": float(diff[interior].max()) if interior.any() else 0.0,
-        "differing_fraction": float(np.mean(diff > TRAIN_PIXEL_TOLERANCE)),
-        "ids_identical": bool(np.array_equal(ids, base_ids)),
+        "differing_fraction": float(np.mean((diff > TRAIN_PIXEL_TOLERANCE) | id_diff)),
+        # Rounding may flip a ray that grazes a silhouette (gnome-house at 1024 px); inside an
+        # object's silhouette a changed id is a changed visibility order, never allowed.
+        "ids_identical": not bool(id_diff[interior_mask(base_ids)].any()),
+        "ids_differing_pixels": int(id_diff.sum()),
         "interior_fraction": float(interior.mean()),
     }
 
@@ -114,7 +119,7 @@ def summarise(index: int, scales: np.ndarray, train: list[tuple[str, dict[str, A
             f"training frame {worst_frac[0]}: {100 * worst_frac[1]['differing_fraction']:.2f}% of pixels differ by more than 1/255"
         )
     if bad_ids:
-        failures.append(f"training frame {bad_ids[0]}: instance ids differ from the training video")
+        failures.append(f"training frame {bad_ids[0]}: instance ids differ from the training video inside a silhouette")
     blank = [name for name, s in train if s.get("interior_fraction", 1.0) == 0.0]
     if blank:  # every preset's room surrounds the camera: a frame without object pixels is broken
         failures.append(f"training frame {blank[0]}: shows no object at all (blank render)")
@@ -142,8 +147,9 @@ def summarise(index: int, scales: np.ndarray, train: list[tuple[str, dict[str, A
 
 
 #: Bumped when a verdict rule changes (2: blank renders and test views seeing no rescaled
-#: object fail), so verdicts cached under the old rules are recomputed.
-VERDICT_RULES = 2
+#: object fail; 3: a silhouette pixel may change its instance id, within the pixel budget), so
+#: verdicts cached under the old rules are recomputed.
+VERDICT_RULES = 3
 
 
 def thresholds() -> dict[str, float]:
