@@ -71,6 +71,9 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
                      f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")
         print(line)
+        for f in r.get("repaired_frames", []):
+            print(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified matches fit "
+                  f"SfM's pose, {100 * f['consistency_after']:.1f}% after)")
     print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s")
     return 0
 
