@@ -134,16 +134,27 @@ def _repose(rec, image_id: int, matches: _Matches, trusted: set[int], max_error:
     return int(res["num_inliers"])
 
 
-def _bundle_adjust(rec) -> None:
+def bundle_adjust(rec, cauchy_px: float | None = None) -> None:
+    """Global bundle adjustment of poses and points with the intrinsics fixed; squared loss, or
+    Cauchy with scale ``cauchy_px`` (pixels of the SfM images)."""
     import pycolmap
 
     opts = pycolmap.BundleAdjustmentOptions()
+    if cauchy_px is not None:
+        opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        opts.ceres.loss_function_scale = cauchy_px
     opts.refine_focal_length = False
     opts.refine_principal_point = False
     opts.refine_extra_params = False
     opts.print_summary = False
     opts.ceres.solver_options.num_threads = 1  # threads change the result's last digits
-    pycolmap.bundle_adjustment(rec, opts)
+    config = pycolmap.BundleAdjustmentConfig()
+    for i, im in rec.images.items():
+        if im.has_pose:
+            config.add_image(i)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    # The adjuster itself, not pycolmap.bundle_adjustment: that one logs past minloglevel.
+    pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
 
 
 def repair_registrations(
@@ -166,7 +177,7 @@ def repair_registrations(
         inliers = _repose(rec, i, matches, trusted, threshold_px, min_inliers, seed)
         report.append({"frame": Path(rec.images[i].name).stem, "consistency": frac[i], "pnp_inliers": inliers})
     if any(r["pnp_inliers"] for r in report):
-        _bundle_adjust(rec)
+        bundle_adjust(rec)
     after = epipolar_consistency(rec, matches, K, threshold_px)
     for i, r in zip(suspects, report):
         n, g = after.get(i, (0, 0))
