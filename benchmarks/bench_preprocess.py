@@ -11,7 +11,8 @@ frames with rotation error <= 1 degree.
 
 Variants: ``default`` (PreprocessConfig()), ``previous`` (the defaults before 2026-11-22:
 luminance, no guided matching, one mapper run, COLMAP's 4 px at 2x upsampling), and the
-single-change variants ``no-guided``, ``luminance``, ``one-run``, ``loose-epipolar``.
+single-change variants ``no-guided``, ``luminance``, ``one-run``, ``loose-epipolar``,
+``no-check`` (no registration check, osn.sfm_repair) and ``no-robust-ba`` (no final Cauchy BA).
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ VARIANTS: dict[str, dict] = {
     "luminance": {"grey": "luminance"},
     "one-run": {"mapper_restarts": 1},
     "loose-epipolar": {"epipolar_error": 2.0},
+    "no-check": {"min_epipolar_consistency": 0.0},
+    "no-robust-ba": {"final_cauchy_px": 0.0},
 }
 
 
@@ -66,6 +69,7 @@ def main() -> None:
                     rotation_deg_mean=round(r["rotation_error_deg_mean"], 2),
                     centre_m_mean=round(r["center_error_m_mean"], 4),
                     meets_target=r["registered_fraction"] >= 0.9 and r["rotation_error_deg_max"] <= 1.0,
+                    repaired=[f"{f['frame']} {f['action']}" for f in r.get("repaired_frames", [])],
                 )
             print(json.dumps(row), flush=True)
         print(json.dumps({"variant": name, "seconds": round(secs, 1), "time_vs_first": round(secs / first, 2)}), flush=True)
