@@ -397,6 +397,20 @@ class EvalResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def relative_scale_errors(actual: np.ndarray, true: np.ndarray, ids: list[int], anchor_id: int) -> list[float]:
+    """Per ground truth ``g``: the mean over non-anchor objects of ``|actual - true| / true``
+    (empty when the anchor is the only object).
+
+    ``actual (G, K)`` holds the matched samples' scales for the run's objects ``ids`` (dataset
+    units, anchor 1); ``true (G, num_objects)`` the ground truths' scales indexed by object id.
+    """
+    free = [k for k, i in enumerate(ids) if i != anchor_id]
+    if not free:  # the anchor alone: no scale is free, so there is no error to report
+        return []
+    t = true[:, [ids[k] for k in free]]
+    return [float(v) for v in np.mean(np.abs(actual[:, free] - t) / t, axis=1)]
+
+
 def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print) -> EvalResult:
     """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset."""
     problem = run.inputs.ground_truth_problem()
@@ -454,11 +468,7 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
     scale_err = []
     try:
         actual = run.inputs.actual_scales(samples.sbar[match])
-        ids = [o.id for o in run.inputs.objects]
-        for g in range(G):
-            free = [k for k, i in enumerate(ids) if i != gt.scene.anchor_id]
-            true = gt.scales[g, [ids[k] for k in free]]
-            scale_err.append(float(np.mean(np.abs(actual[g, free] - true) / true)))
+        scale_err = relative_scale_errors(actual, gt.scales, [o.id for o in run.inputs.objects], gt.scene.anchor_id)
     except ValueError as e:  # inputs without ground-truth units
         log.warning("no scale error: %s", e)
 

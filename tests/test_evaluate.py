@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
-from osn.evaluate import Layer, composite_layers, masked_mse_matrix, nearest_level, scale_levels
+from osn.evaluate import Layer, composite_layers, masked_mse_matrix, nearest_level, relative_scale_errors, scale_levels
 
 
 def test_masked_mse_matrix_equals_brute_force():
@@ -55,3 +56,16 @@ def test_scale_levels_cover_the_samples_in_log_space():
     assert np.isclose(grids[1][0], 0.2) and np.isclose(grids[1][-1], 0.8)
     assert np.allclose(np.diff(np.log(grids[1])), np.log(4) / 4)
     assert list(nearest_level(sbar[:, 1], grids[1])) == [0, 4, 2]
+
+
+def test_relative_scale_errors_skip_the_anchor_and_index_truth_by_object_id():
+    """Objects 0 (anchor), 2 and 3 were trained (object 1 was dropped); the truth is indexed by
+    id, so object 3's column is the fourth. Worked by hand: (|0.5-0.4|/0.4 + |2-2.5|/2.5) / 2."""
+    actual = np.array([[1.0, 0.5, 2.0], [1.0, 0.4, 2.5]])
+    true = np.array([[1.0, 9.0, 0.4, 2.5], [1.0, 9.0, 0.4, 2.5]])
+    err = relative_scale_errors(actual, true, ids=[0, 2, 3], anchor_id=0)
+    assert err == pytest.approx([(0.25 + 0.2) / 2, 0.0])
+    # the anchor may be any object: here object 2, so objects 0 and 3 are compared
+    err = relative_scale_errors(actual, true, ids=[0, 2, 3], anchor_id=2)
+    assert err == pytest.approx([(0.0 + 0.2) / 2, 0.0])
+    assert relative_scale_errors(actual[:, :1], true, ids=[0], anchor_id=0) == []
