@@ -78,7 +78,7 @@ class PreprocessConfig:
         final_cauchy_px: scale (input-frame pixels) of the Cauchy loss of a last global bundle
             adjustment; 0 skips it. COLMAP's own global BA uses a squared loss, which lets the
             few bad observations of a weakly seen frame pull it (ring-toy at 1024 px, frame 0:
-            4.7 degrees before, 2.9 after).
+            4.7 degrees before, 2.9 after; 0.5 px beat 1 and 2 px on gnome-house, docs/preprocess.md).
     """
 
     matcher: str = "auto"
@@ -106,7 +106,7 @@ class PreprocessConfig:
     seed: int = 0
     mapper_restarts: int = 4
     min_epipolar_consistency: float = 0.2
-    final_cauchy_px: float = 1.0
+    final_cauchy_px: float = 0.5
 
     def __post_init__(self) -> None:
         if self.matcher not in ("auto", "exhaustive", "sequential"):
