@@ -3,11 +3,12 @@
 A configuration passes when its re-rendered training frames reproduce the base video (interior
 pixels within ``TRAIN_MAX_INTERIOR_DIFF`` in linear RGB, at most ``TRAIN_MAX_DIFFERING_FRACTION``
 of all pixels off by more than 1/255 or showing another instance id, instance ids identical
-away from silhouettes) and its test views differ from
-configuration 0's on at least ``TEST_MIN_DIFFERING_FRACTION`` of the pixels where an object whose
-scale differs from configuration 0's is seen (so the configurations are really different scenes).
-Every pixel is the pixel-centre ray (``benchgen.render``), so identical ids away from silhouettes
-prove that no visibility order flipped (a ray grazing a silhouette may flip by rounding); the colour checks confirm that shading is local. Float
+away from silhouettes) and its test views differ from configuration 0's on at least
+``TEST_MIN_DIFFERING_FRACTION`` of the pixels where an object whose scale differs from
+configuration 0's is seen (so the configurations are really different scenes). Every pixel is
+the pixel-centre ray (``benchgen.render``), so identical ids away from silhouettes prove that no
+visibility order flipped (a ray grazing a silhouette may flip by rounding); the colour checks
+confirm that shading is local. Float
 rounding of a rescaled object's hit points is amplified by ``1 / cos`` of the incidence angle, so
 silhouettes and grazing hits (outside ``interior_mask``) get the pixel budget, not the 1e-4 limit.
 So do crease hits: where two parts of one object intersect, the normal is discontinuous and

@@ -224,7 +224,7 @@ def reconstruct_object(
     """SfM of one object from ``images (T,H,W,3) uint8`` and ``masks (T,H,W)`` instance ids.
 
     ``work_dir`` (created, must not exist) keeps COLMAP's images, ``database.db`` and the final
-    model (``model/``, after :func:`osn.sfm_repair.repair_registrations`) for inspection;
+    model (``model/``, after the registration check and the final bundle adjustment) for inspection;
     by default they live in a temporary directory that is removed.
 
     Raises:
