@@ -61,19 +61,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
     atomic_write_json(Path(args.out) / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped,
                                                                  "seconds": time.perf_counter() - t0})
-    for r in report.objects:
-        if "error" in r:
-            print(f"  object {r['id']} ({r['name']}): DROPPED: {r['error']}")
-            continue
-        line = (f"  object {r['id']} ({r['name']}): {r['registered_frames']}/{r['candidate_frames']} frames, {r['points']} points, "
-                f"reprojection error {r['reprojection_error_px']:.2f} px")
-        if "rotation_error_deg_max" in r:
-            line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
-                     f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")
-        print(line)
-        for f in r.get("repaired_frames", []):
-            print(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified matches fit "
-                  f"SfM's pose, {100 * f['consistency_after']:.1f}% after)")
+    print("\n".join(P.report_lines(report.objects)))
     print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s")
     return 0
 

@@ -480,6 +480,25 @@ def preprocess_video(
     return inputs, report
 
 
+def report_lines(objects: list[dict]) -> list[str]:
+    """One line per object of a :class:`PreprocessReport` (and one per repaired frame)."""
+    lines = []
+    for r in objects:
+        if "error" in r:
+            lines.append(f"  object {r['id']} ({r['name']}): DROPPED: {r['error']}")
+            continue
+        line = (f"  object {r['id']} ({r['name']}): {r['registered_frames']}/{r['candidate_frames']} frames, "
+                f"{r['points']} points, reprojection error {r['reprojection_error_px']:.2f} px")
+        if "rotation_error_deg_max" in r:
+            line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
+                     f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")
+        lines.append(line)
+        for f in r.get("repaired_frames", []):
+            lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "
+                         f"matches fit SfM's pose, {100 * f['consistency_after']:.1f}% after)")
+    return lines
+
+
 def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress=None) -> tuple[SceneInputs, PreprocessReport]:
     """Per-object SfM on a benchgen dataset's training video, aligned to its ground truth.
 

@@ -327,3 +327,17 @@ def test_final_robust_bundle_adjustment_lowers_rotation_errors(sfm_scene):
     plain, robust = means.values()
     assert plain.keys() == robust.keys() and len(plain) == 3
     assert all(robust[k] < plain[k] for k in plain), means
+
+
+def test_report_lines_name_dropped_objects_and_repaired_frames():
+    objects = [
+        {"id": 0, "name": "room", "registered_frames": 15, "candidate_frames": 15, "points": 16559,
+         "reprojection_error_px": 0.355, "repaired_frames": [
+             {"frame": "00014", "action": "re-posed", "consistency": 0.0155, "consistency_after": 0.590}]},
+        {"id": 3, "name": "ring-toy", "error": "object 3 (ring-toy): registered 2 of 15 frames"},
+    ]
+    assert P.report_lines(objects) == [
+        "  object 0 (room): 15/15 frames, 16559 points, reprojection error 0.35 px",
+        "    frame 00014: re-posed (1.6% of its verified matches fit SfM's pose, 59.0% after)",
+        "  object 3 (ring-toy): DROPPED: object 3 (ring-toy): registered 2 of 15 frames",
+    ]
