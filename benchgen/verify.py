@@ -78,9 +78,9 @@ def compare_training(
     return {
         "max_interior_diff": float(diff[interior].max()) if interior.any() else 0.0,
         "differing_fraction": float(np.mean((diff > TRAIN_PIXEL_TOLERANCE) | id_diff)),
-        # Rounding may flip a ray that grazes a silhouette (gnome-house at 1024 px); inside an
-        # object's silhouette a changed id is a changed visibility order, never allowed.
-        "ids_identical": not bool(id_diff[interior_mask(base_ids)].any()),
+        # Rounding may flip a ray that grazes a silhouette (gnome-house at 1024 px); on an
+        # interior pixel a changed id is a changed visibility order, never allowed.
+        "ids_identical": not bool(id_diff[interior].any()),
         "ids_differing_pixels": int(id_diff.sum()),
         "interior_fraction": float(interior.mean()),
     }
@@ -139,6 +139,7 @@ def summarise(index: int, scales: np.ndarray, train: list[tuple[str, dict[str, A
         "worst_frame": worst[0],
         "max_differing_fraction": worst_frac[1]["differing_fraction"],
         "ids_identical": not bad_ids,
+        "max_ids_differing_pixels": max(s.get("ids_differing_pixels", 0) for _, s in train),
         "min_interior_fraction": min(s.get("interior_fraction", 1.0) for _, s in train),
         "test_pixels_with_rescaled_objects": seen,
         "test_differing_fraction": frac if index != 0 and seen else None,

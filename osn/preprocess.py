@@ -78,7 +78,7 @@ class PreprocessConfig:
         final_cauchy_px: scale (input-frame pixels) of the Cauchy loss of a last global bundle
             adjustment; 0 skips it. COLMAP's own global BA uses a squared loss, which lets the
             few bad observations of a weakly seen frame pull it (ring-toy at 1024 px, frame 0:
-            4.7 degrees before, 2.9 after; 0.5 px beat 1 and 2 px on gnome-house, docs/preprocess.md).
+            4.7 degrees before, 2.9 after; 1 px: 4.5, 2 px: 5.2; docs/preprocess.md).
     """
 
     matcher: str = "auto"

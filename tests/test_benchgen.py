@@ -138,7 +138,7 @@ def test_verdict_fails_blank_renders_and_test_views_that_see_no_rescaled_object(
 
 def test_instance_ids_may_flip_on_silhouettes_only():
     """A ray grazing a silhouette may change object by rounding (gnome-house at 1024 px: one
-    pixel); it counts in the pixel budget. Inside a silhouette a changed id fails."""
+    pixel, max_ids_differing_pixels 1); it counts in the pixel budget. Inside a silhouette a changed id fails."""
     base = np.zeros((8, 8), dtype=np.uint8)
     base[2:6, 2:6] = 1
     rgb = np.zeros((8, 8, 3))
@@ -151,6 +151,8 @@ def test_instance_ids_may_flip_on_silhouettes_only():
     assert not compare_training(rgb, base, rgb, inner)["ids_identical"]
     v = summarise(0, np.ones(2), [("t0", compare_training(rgb, base, rgb, inner))], [])
     assert not v["passed"] and any("instance ids differ from the training video inside a silhouette" in f for f in v["failures"])
+    v = summarise(0, np.ones(2), [("t0", s), ("t1", compare_training(rgb, base, rgb, base))], [])
+    assert v["max_ids_differing_pixels"] == 1  # recorded in verification.json
 
 
 def test_interior_mask_excludes_borders_silhouettes_and_grazing_hits():
