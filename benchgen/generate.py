@@ -297,7 +297,7 @@ def prepare(spec: SceneSpec) -> tuple[BuiltScene, np.ndarray]:
     """Build the scene and run every check that needs no rendering; returns room scale limits."""
     try:
         built = build_scene(spec)
-    except (ValueError, NotImplementedError) as e:  # trimesh: unknown mesh format
+    except ValueError as e:  # bad geometry; object_geometry turns every mesh-loading failure into one
         raise UserError(f"{spec.source}: {e}") from None
     check_authored_scene(built)
     return built, room_scale_limits(built)

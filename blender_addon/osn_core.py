@@ -297,6 +297,15 @@ def _list(value: Any, where: str, what: str) -> list:
     return value
 
 
+def names_manifest(filepath: str, set_in_call: bool) -> bool:
+    """Whether an import call names an ``osn_export.json`` itself (then it imports without a file
+    browser). ``filepath`` is remembered between runs (the browser reopens in the last export's
+    folder), so a value alone does not mean the caller chose it: ``set_in_call`` is Blender's
+    ``is_property_set("filepath")``, false for a value carried over from the previous run and true
+    only when the caller (drop handler, menu/keymap item, script) set it for this call."""
+    return bool(set_in_call) and os.path.basename(filepath) == MANIFEST_NAME
+
+
 def _str(value: Any, where: str, what: str) -> str:
     if not isinstance(value, str) or not value:
         raise ExportFormatError(f"{where}: {what} must be a non-empty string, got {_show(value)}")
@@ -439,7 +448,7 @@ def read_export(path: str, load_meshes: bool = True) -> ExportData:
         )
     try:
         return _read_manifest(root, mpath, m, load_meshes)
-    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:
+    except (TypeError, ValueError, KeyError, IndexError) as e:
         # The checks above and below name the field; this only keeps a case they missed from
         # reaching the user as a traceback.
         if isinstance(e, ExportFormatError):
@@ -529,16 +538,10 @@ def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) 
         _dict(net, mpath, "'scale_network'")
         z = _load_npz(named(_get(net, "file", where), "scale network file"))
         n = _int(_get(net, "layers", where), where, "layers", minimum=1)
-        try:
-            layers = [(z[f"W{i}"].astype(np.float64), z[f"b{i}"].astype(np.float64)) for i in range(n)]
-        except KeyError as e:
-            raise ExportFormatError(f"{mpath}: scale network file lacks {e}") from None
-        except (TypeError, ValueError):
-            raise ExportFormatError(f"{mpath}: scale network file holds non-numeric arrays") from None
-        width_in = len(objects) - 1
-        for i, (W, b) in enumerate(layers):
-            if W.ndim != 2 or b.shape != (W.shape[0],) or W.shape[1] != width_in or not np.all(np.isfinite(W)):
-                raise ExportFormatError(f"{mpath}: scale network layer {i} has W {W.shape}, b {b.shape}; expected input width {width_in}")
+        width_in, layers = len(objects) - 1, []
+        for i in range(n):  # each layer's input width is the previous layer's output width
+            W = _array(z, f"W{i}", (None, width_in), where)
+            layers.append((W, _array(z, f"b{i}", (W.shape[0],), where)))
             width_in = W.shape[0]
         if width_in != 1:
             raise ExportFormatError(f"{mpath}: scale network output width {width_in}, expected 1")

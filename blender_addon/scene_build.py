@@ -263,8 +263,7 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
             for part in parts:
                 coll.objects.link(part)
                 part.parent = empty
-            key_matrices(empty, o.frames + 1.0, o.object_to_scene, made)
-            _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)
+            _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)  # keys the poses at that scale
         cams = [("OSN training camera", data.camera_to_scene)]
         if data.test_cameras is not None:
             cams += [(f"OSN test camera {v}", c) for v, c in enumerate(data.test_cameras)]

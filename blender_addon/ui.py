@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import bpy
 from bpy.app.handlers import persistent
 from bpy.props import IntProperty, PointerProperty, StringProperty
@@ -44,14 +42,8 @@ class OSN_OT_import(bpy.types.Operator, ImportHelper):
 
 
 def _manifest_given(op: bpy.types.Operator) -> bool:
-    """Whether this call of ``op`` names an ``osn_export.json`` (then invoke imports without a browser).
-
-    ``filepath`` is remembered between runs (the file browser reopens in the last export's folder),
-    so a value alone does not mean the caller chose it: ``is_property_set`` with its default
-    ``ghost=True`` is false for a value carried over from the previous run and true only when the
-    caller (drop handler, menu/keymap item, script) set it for this call.
-    """
-    return op.properties.is_property_set("filepath") and os.path.basename(op.filepath) == core.MANIFEST_NAME
+    """Whether this call of ``op`` names an ``osn_export.json`` (:func:`osn_core.names_manifest`)."""
+    return core.names_manifest(op.filepath, op.properties.is_property_set("filepath"))
 
 
 class OSN_FH_import(bpy.types.FileHandler):

@@ -89,15 +89,17 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         return {"frames_rendered": s.frames_rendered, "render_seconds": s.render_seconds}
 
     def preprocess() -> dict:
+        from benchgen import dataset as D
         from benchgen.dataset import atomic_write_json
 
         from .inputs import InputsError, oracle_inputs, save_inputs
         from .preprocess import PreprocessConfig, preprocess_dataset
 
-        save_inputs(oracle_dir, oracle_inputs(dataset))
+        video = D.read_training_video(dataset, D.load_scene(dataset))  # read once for both
+        save_inputs(oracle_dir, oracle_inputs(dataset, video=video))
         try:
             inputs, report = preprocess_dataset(dataset, PreprocessConfig(on_failure="skip"),
-                                                progress=lambda m: print(f"  {m} ...", flush=True))
+                                                progress=lambda m: print(f"  {m} ...", flush=True), video=video)
         except InputsError as e:
             if args.inputs == "colmap":
                 raise

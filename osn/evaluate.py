@@ -464,13 +464,10 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
     table = {f"best of {len(samples.sbar)}": mean_std([{k: v for k, v in r.items() if k not in ("sample", "approx_psnr")} for r in per_gt])}
     table.update(baselines)
 
-    # Relative scale error of the matched samples (non-anchor objects, dataset scales).
-    scale_err = []
-    try:
-        actual = run.inputs.actual_scales(samples.sbar[match])
-        scale_err = relative_scale_errors(actual, gt.scales, [o.id for o in run.inputs.objects], gt.scene.anchor_id)
-    except ValueError as e:  # inputs without ground-truth units
-        log.warning("no scale error: %s", e)
+    # Relative scale error of the matched samples (non-anchor objects, dataset scales); the units
+    # it needs were checked above (ground_truth_problem).
+    actual = run.inputs.actual_scales(samples.sbar[match])
+    scale_err = relative_scale_errors(actual, gt.scales, [o.id for o in run.inputs.objects], gt.scene.anchor_id)
 
     valid = valid_set_accuracy(run, region, cfg.grid, cfg.seed)
 
@@ -492,11 +489,8 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
     profile = None
     if free_pos:
         k = max(free_pos, key=lambda k: np.log(run.ranges[k, 1] / run.ranges[k, 0]))
-        try:
-            ref = run.inputs.true_scales(np.array([gt.scales[0, o.id] for o in run.inputs.objects]))
-            profile = {"object": run.inputs.objects[k].name, **{a: b.tolist() for a, b in validity_profile(run, region, ref, k).items()}}
-        except ValueError:
-            profile = None
+        ref = run.inputs.true_scales(np.array([gt.scales[0, o.id] for o in run.inputs.objects]))
+        profile = {"object": run.inputs.objects[k].name, **{a: b.tolist() for a, b in validity_profile(run, region, ref, k).items()}}
     curves = {
         "best_psnr_vs_n": {"n": Ns, "psnr": best_vs_n},
         "overall_psnr_vs_num_gt": {"num_gt": Gs, "psnr": overall_vs_g},

@@ -286,11 +286,14 @@ class FieldConfig:
         for name in ("resolution", "initial_resolution"):  # trilinear interpolation needs 2 voxels
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 2):
                 raise ValueError(f"field.{name} must be an integer >= 2, got {getattr(self, name)!r}")
+        def count(name: str, least: int) -> None:  # 1.5 layers would crash later, as a traceback
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < least:
+                raise ValueError(f"field.{name} must be an integer >= {least}, got {v!r}")
+
         for name in ("density_components", "appearance_components", "app_dim", "hidden"):
-            if not getattr(self, name) >= 1:
-                raise ValueError(f"field.{name} must be >= 1, got {getattr(self, name)!r}")
-        if not self.upsample_steps >= 0:
-            raise ValueError(f"field.upsample_steps must be >= 0, got {self.upsample_steps!r}")
+            count(name, 1)
+        count("upsample_steps", 0)
         for name in ("lr_grid", "lr_net"):
             if not 0 < getattr(self, name) < float("inf"):
                 raise ValueError(f"field.{name} must be a positive learning rate, got {getattr(self, name)!r}")

@@ -129,14 +129,15 @@ class SceneInputs:
         u = self._units()
         return np.asarray(sbar) * u[self.anchor_pos] / u
 
-    def ground_truth_problem(self) -> str | None:
+    def ground_truth_problem(self, test_views: bool = True) -> str | None:
         """Why these inputs cannot be compared with ground truth (None when they can): every
-        object needs its metres per unit and the scene its world-to-anchor similarity (the
-        oracle has both; SfM has them once aligned, unless an alignment failed)."""
+        object needs its metres per unit (scales, the valid set) and, with ``test_views``, the
+        scene its world-to-anchor similarity (to place test cameras). The oracle has both; SfM
+        has them once aligned, unless an alignment failed."""
         missing = [f"{o.id} ({o.name})" for o in self.objects if o.unit_to_world is None]
         if missing:
             return f"object(s) {', '.join(missing)} have no ground-truth unit (no oracle, or their SfM alignment failed)"
-        if self.world_to_anchor is None:
+        if test_views and self.world_to_anchor is None:
             return "no world-to-anchor alignment, so test cameras cannot be placed"
         return None
 

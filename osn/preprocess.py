@@ -499,16 +499,21 @@ def report_lines(objects: list[dict]) -> list[str]:
     return lines
 
 
-def preprocess_dataset(dataset_root: str | Path, cfg: PreprocessConfig, progress=None) -> tuple[SceneInputs, PreprocessReport]:
+def preprocess_dataset(
+    dataset_root: str | Path, cfg: PreprocessConfig, progress=None,
+    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> tuple[SceneInputs, PreprocessReport]:
     """Per-object SfM on a benchgen dataset's training video, aligned to its ground truth.
 
     The dataset's instance masks stand in for a learned segmenter and its intrinsics are the
     known camera. Ground truth is used only *after* SfM, to measure accuracy and to record each
-    object's unit and the world-to-anchor similarity (needed to place test cameras).
+    object's unit and the world-to-anchor similarity (needed to place test cameras). ``video``:
+    :func:`benchgen.dataset.read_training_video`'s result when the caller already read it.
     """
     root = Path(dataset_root)
     scene = D.load_scene(root)
-    video = D.read_training_video(root, scene)
+    if video is None:
+        video = D.read_training_video(root, scene)
     oracle = oracle_inputs(root, OracleConfig(min_pixels=1, points_per_frame=1), video)
     names = {o.id: o.name for o in scene.objects}
     inputs, report = preprocess_video(

@@ -80,7 +80,7 @@ def sample_valid(
     around vectors labelled valid before: the valid share of the box shrinks exponentially with
     the object count, so uniform candidates can all miss it) and one of those that pass is
     picked; the uniform draw, which covers the whole valid set, stays the rule. When none
-    passes, the best-scoring candidate is used and a warning is logged (unless ``warn`` is
+    passes, the best-scoring candidate of either set is used and a warning is logged (unless ``warn`` is
     False because the caller counts fallbacks): this never raises. Returns
     ``(sbar (K,), s_free (K-1,), score, fell_back)``.
     """
@@ -93,9 +93,9 @@ def sample_valid(
         s2 = near(candidates).to(dev)
         with torch.no_grad():
             p2 = net.prob(s2)
-        ok2 = torch.nonzero(p2 > threshold)[:, 0]
-        if len(ok2):
-            s, p, ok = s2, p2, ok2
+        # Both sets together: one passing near candidate is picked, or the best of either set.
+        s, p = torch.cat([s, s2]), torch.cat([p, p2])
+        ok = torch.nonzero(p > threshold)[:, 0]
     if len(ok):
         i = ok[torch.randint(len(ok), (1,), generator=generator, device=generator.device).to(dev)][0]
         fell_back = False

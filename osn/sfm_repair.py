@@ -166,8 +166,9 @@ def repair_registrations(
     matches = _Matches(db_path)
     cons = epipolar_consistency(rec, matches, K, threshold_px)
     frac = {i: (g / n if n else 1.0) for i, (n, g) in cons.items()}
-    log.info("epipolar consistency per frame: %s",
-             " ".join(f"{Path(rec.images[i].name).stem}:{f:.2f}" for i, f in sorted(frac.items(), key=lambda x: rec.images[x[0]].name)))
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug("epipolar consistency per frame: %s", " ".join(
+            f"{Path(rec.images[i].name).stem}:{f:.2f}" for i, f in sorted(frac.items(), key=lambda x: rec.images[x[0]].name)))
     suspects = sorted(i for i, f in frac.items() if f < min_consistency)
     if not suspects:
         return []

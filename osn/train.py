@@ -672,7 +672,8 @@ class Evaluator:
         self.flat = pool[torch.randperm(len(pool), generator=g)[:n].to(st.device)]
         self.region = None
         has_region = dataset_root is not None and (Path(dataset_root) / "valid_region.json").exists()
-        problem = st.inputs.ground_truth_problem() if has_region else None
+        # Scales need only the units; test cameras (world_to_anchor) are evaluation's concern.
+        problem = st.inputs.ground_truth_problem(test_views=False) if has_region else None
         if problem:
             log.warning("valid-set accuracy is not measured during training: %s", problem)
         if trainer.net is not None and has_region and not problem:

@@ -101,7 +101,7 @@ def test_look_at_points_forward():
     assert C.rotation_angle_deg(T, T) == pytest.approx(0.0, abs=1e-6)
 
 
-@pytest.mark.parametrize("deg", [0.5, 1.0, 30.0, 90.0, 179.0, 180.0])
+@pytest.mark.parametrize("deg", [1e-5, 0.5, 1.0, 30.0, 90.0, 179.0, 180.0])
 def test_rotation_angle_is_the_geodesic_angle(deg: float):
     """The SfM accuracy figures rest on this: the angle of R_a^T R_b about any axis, in degrees,
     symmetric and independent of a common rotation applied to both."""
@@ -115,6 +115,8 @@ def test_rotation_angle_is_the_geodesic_angle(deg: float):
     assert C.rotation_angle_deg(np.eye(3), R) == pytest.approx(deg, abs=1e-6)
     assert C.rotation_angle_deg(R, np.eye(3)) == pytest.approx(deg, abs=1e-6)
     assert C.rotation_angle_deg(Q, Q @ R) == pytest.approx(deg, abs=1e-6)
+    # relative precision too, which acos(trace) loses near 0 (0.4% off at 1e-5 degrees)
+    assert C.rotation_angle_deg(np.eye(3), R) == pytest.approx(deg, rel=1e-6)
 
 
 def test_fit_pose_similarity_recovers_transform_even_for_collinear_centres():

@@ -60,7 +60,7 @@ def test_scale_conversions_and_ranges(oracle):
     assert np.allclose(I.denormalise_scales(np.full(3, 0.25), ranges), 0.75 * ranges[:, 0] + 0.25 * ranges[:, 1])
     u = np.array([o.unit_to_world for o in inp.objects])
     assert np.allclose(inp.true_scales(actual), actual * u / u[inp.anchor_pos])
-    assert inp.true_scales(np.ones(3))[inp.anchor] == 1.0
+    assert inp.true_scales(np.ones(3))[inp.anchor_pos] == 1.0
 
 
 def test_anchor_is_found_by_id_not_by_position(oracle):
@@ -87,9 +87,12 @@ def test_malformed_object_inputs_are_named(oracle):
     _, _, inp = oracle
     o = inp.objects[1]
     bad_frames = dataclasses.replace(o, frames=o.frames + 100)
-    bad_pix = dataclasses.replace(o, sparse_pix=[p + inp.width for p in o.sparse_pix])
+    # each axis on its own, so a check of only one of them fails
+    bad_u = dataclasses.replace(o, sparse_pix=[p + [inp.width, 0] for p in o.sparse_pix])
+    bad_v = dataclasses.replace(o, sparse_pix=[p + [0, inp.height] for p in o.sparse_pix])
     bad_box = dataclasses.replace(o, bbox=o.bbox[::-1])
-    for obj, msg in ((bad_frames, "frames outside"), (bad_pix, "sparse pixels outside"), (bad_box, "empty or malformed box")):
+    for obj, msg in ((bad_frames, "frames outside"), (bad_u, "sparse pixels outside"), (bad_v, "sparse pixels outside"),
+                     (bad_box, "empty or malformed box")):
         objects = list(inp.objects)
         objects[1] = obj
         with pytest.raises(I.InputsError, match=f"x: object {o.id} .*{msg}"):

@@ -298,3 +298,32 @@ def test_fallback_sampling_never_crashes(caplog) -> None:
         net.mlp[-1].bias.fill_(50.0)
     sbar2, _, p2, fb2 = sample_valid(net, ranges, 0, torch.Generator().manual_seed(0), candidates=8)
     assert not fb2 and p2 > 0.95
+
+
+class _FirstCoordinateNet(torch.nn.Module):
+    """Stands in for ScaleNet in sampling: the validity score is the first free coordinate."""
+
+    num_free = 2
+
+    def prob(self, s: torch.Tensor) -> torch.Tensor:
+        return s[:, 0]
+
+
+def test_near_candidates_are_asked_only_when_every_uniform_one_misses() -> None:
+    """The uniform draw stays the rule (it covers the whole valid set); ``near`` is a second
+    chance, and when both sets miss the best candidate of either is the fallback."""
+    ranges = torch.tensor([[1.0, 1.0], [0.5, 2.0], [0.5, 2.0]], dtype=torch.float64)
+    net = _FirstCoordinateNet()
+
+    def never(_n: int) -> torch.Tensor:
+        raise AssertionError("near candidates drawn although a uniform candidate passed")
+
+    _, s, p, fb = sample_valid(net, ranges, 0, torch.Generator().manual_seed(0), threshold=0.5, near=never)
+    assert not fb and p > 0.5 and s[0] == p  # a uniform candidate, score = its first coordinate
+    # 8 uniform candidates, none above 0.999 with this seed; near candidates score 0.9995
+    near = lambda n: torch.tensor([[0.9995, 0.5]] * n, dtype=torch.float64)  # noqa: E731
+    g = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    _, s, p, fb = sample_valid(net, ranges, 0, g(), candidates=8, threshold=0.999, near=near)
+    assert not fb and s.tolist() == pytest.approx([0.9995, 0.5])  # a passing near candidate
+    _, s, p, fb = sample_valid(net, ranges, 0, g(), candidates=8, threshold=0.9999, near=near, warn=False)
+    assert fb and s.tolist() == pytest.approx([0.9995, 0.5])  # nothing passes: the best of both sets

@@ -391,7 +391,8 @@ def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
     assert not (tmp_path / "r2" / "checkpoint.pt").exists()
 
 
-@pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0}])
+@pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0},
+                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"app_dim": True}])
 def test_field_config_rejects_impossible_values(bad: dict) -> None:
     (key, _), = bad.items()
     with pytest.raises(ValueError, match=f"field.{key} must"):

@@ -663,6 +663,10 @@ def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(
     assert "iou" not in ev() and np.isfinite(ev()["psnr"])
     no_rig = dataclasses.replace(original, world_to_anchor=None)
     assert "test cameras cannot be placed" in no_rig.ground_truth_problem()
+    # Without the anchor's test-view alignment (units intact) training still measures the valid set.
+    caplog.clear()
+    ev = Evaluator(Trainer(no_rig, cfg, torch.device("cpu")), tiny_dataset)
+    assert ev.region is not None and "not measured" not in caplog.text and "iou" in ev()
 
 
 # --------------------------------------------------------------------------------------------
@@ -722,6 +726,14 @@ def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_d
     full = np.ones((1, scales.shape[1]))
     full[0, ids] = inside
     assert ground_truth_outside_box(run, full) == {"gt_outside_scale_box": 0, "gt_outside_scale_box_max": 0.0}
+    # Above the box counts too: one free object 0.2 of its range above the box's upper bound.
+    k = [p for p in range(len(ids)) if p != run.anchor_pos][0]
+    over = run.ranges.mean(axis=1)
+    over[k] = run.ranges[k, 1] + 0.2 * (run.ranges[k, 1] - run.ranges[k, 0])
+    above = np.ones((1, scales.shape[1]))
+    above[0, ids] = run.inputs.actual_scales(over)
+    got = ground_truth_outside_box(run, above)
+    assert got["gt_outside_scale_box"] == 1 and got["gt_outside_scale_box_max"] == pytest.approx(0.2)
 
 
 def test_validity_profile_walks_one_scale_through_its_range(trained: Path, tiny_dataset: Path) -> None:
