@@ -28,7 +28,7 @@ $(STAMP): pyproject.toml Makefile
 	@# torchvision would pull a CUDA torch; nothing imports it outside tests.
 	$(PY) -m pip install --quiet --no-deps lpips==0.1.4
 	@# LPIPS AlexNet v0.1 weights for offline evaluation, fetched and converted once (idempotent).
-	$(PY) -m osn.lpips install
+	$(PY) -m benchgen.score.lpips install
 	@touch $(STAMP)
 
 test: $(STAMP)
@@ -42,4 +42,4 @@ clean-venv:
 
 # Installable Blender extension zip (Blender 4.2+ / 5.0) in dist/.
 addon: $(STAMP)
-	$(PY) -m osn.addon_build --out dist
+	$(PY) -m osn.export.addon_build --out dist

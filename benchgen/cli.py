@@ -6,11 +6,11 @@ import argparse
 import sys
 from typing import Sequence
 
-from .cliutil import UserError, run_cli, subcommand
+from scenecore.cli import UserError, run_cli, subcommand
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from .dataset import validate
+    from scenecore.dataset import validate
 
     problems = validate(args.dataset, check_images=not args.manifest_only)
     for p in problems:
@@ -23,7 +23,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _load_spec(args: argparse.Namespace):
-    from .spec import load_preset, load_spec
+    from benchgen.scene.spec import load_preset, load_spec
 
     if (args.preset is None) == (args.spec is None):
         raise UserError("give exactly one of --preset NAME or --spec FILE")
@@ -38,20 +38,20 @@ def _report(summary) -> int:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from .generate import generate
+    from benchgen.render.generate import generate
 
     spec = _load_spec(args)
     return _report(generate(spec, args.out, args.workers, args.executor, args.address, progress=not args.quiet))
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
-    from .generate import verify_dataset
+    from benchgen.render.generate import verify_dataset
 
     return _report(verify_dataset(args.dataset, args.workers, args.executor, args.address, progress=not args.quiet))
 
 
 def _cmd_presets(args: argparse.Namespace) -> int:
-    from .spec import PRESET_DIR, load_preset, preset_names
+    from benchgen.scene.spec import PRESET_DIR, load_preset, preset_names
 
     for name in preset_names():
         s = load_preset(name)

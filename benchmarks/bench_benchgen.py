@@ -15,8 +15,8 @@ import os
 import tempfile
 from pathlib import Path
 
-from benchgen.generate import generate
-from benchgen.spec import load_preset, spec_from_dict
+from benchgen.render.generate import generate
+from benchgen.scene.spec import load_preset, spec_from_dict
 
 from benchutil import print_command
 

@@ -32,8 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     print_command()
 
-    from osn.evaluate import exact_psnr, layered_psnr, load_ground_truth, render_sample, sample_configurations
-    from osn.run import load_run
+    from osn.evaluate.evaluation import exact_psnr, layered_psnr, load_ground_truth, render_sample, sample_configurations
+    from osn.model.run import load_run
 
     run = load_run(args.run)
     samples = sample_configurations(run, args.n, seed=args.seed)

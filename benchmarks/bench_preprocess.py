@@ -22,7 +22,7 @@ import json
 import sys
 import time
 
-from osn.preprocess import PreprocessConfig, preprocess_dataset
+from osn.preprocess.sfm import PreprocessConfig, preprocess_dataset
 
 from benchutil import print_command
 

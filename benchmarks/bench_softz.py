@@ -25,11 +25,11 @@ from pathlib import Path
 
 import torch
 
-from osn.inputs import load_inputs
-from osn.scale_net import full_sbar
-from osn.softz import implied_segmentation, sample_accuracy, validity_labels
-from osn.train import TrainConfig, Trainer, pick_device
-from osn.volume import render
+from osn.preprocess.inputs import load_inputs
+from osn.model.scale_net import full_sbar
+from osn.model.softz import implied_segmentation, sample_accuracy, validity_labels
+from osn.train.loop import TrainConfig, Trainer, pick_device
+from osn.model.volume import render
 
 from benchutil import print_command
 

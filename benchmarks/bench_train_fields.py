@@ -19,9 +19,9 @@ import time
 import torch
 import torch.nn.functional as F
 
-from osn.inputs import oracle_inputs
-from osn.train import TrainConfig, Trainer, pick_device
-from osn.volume import render
+from osn.preprocess.inputs import oracle_inputs
+from osn.train.loop import TrainConfig, Trainer, pick_device
+from osn.model.volume import render
 
 from benchutil import print_command
 

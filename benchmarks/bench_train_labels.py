@@ -25,10 +25,10 @@ import numpy as np
 import torch
 import yaml
 
-from osn.inputs import load_inputs
-from osn.scale_net import full_sbar
-from osn.softz import trimmed_labels
-from osn.train import Evaluator, Phase, TrainConfig, Trainer
+from osn.preprocess.inputs import load_inputs
+from osn.model.scale_net import full_sbar
+from osn.model.softz import trimmed_labels
+from osn.train.loop import Evaluator, Phase, TrainConfig, Trainer
 
 from benchutil import print_command
 

@@ -1,7 +1,8 @@
 """OSN scene importer for Blender: learned objects, trajectories, scale sliders, valid configurations.
 
-This file must stay importable without ``bpy``: ``osn`` imports the numpy-only ``osn_core`` from
-this package, so everything that needs Blender is imported inside :func:`register`.
+This file must stay importable without ``bpy`` (tests import the package), so everything that
+needs Blender is imported inside :func:`register`. The export format and camera conventions come
+from the shared kernel ``scenecore`` (bundled into the built extension, see ``_kernel.py``).
 """
 
 bl_info = {

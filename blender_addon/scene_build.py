@@ -17,7 +17,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from . import osn_core as core
+from ._kernel import export_format as core
 
 #: Layered actions (slot -> layer -> strip -> channelbag) replace ``Action.fcurves`` from 4.4 on.
 LAYERED_ACTIONS = bpy.app.version >= (4, 4, 0)
@@ -212,7 +212,7 @@ def _check_volume(vol: bpy.types.Volume, path: str) -> None:
 def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection:
     """Import the export at ``path`` (directory or manifest) into the scene; return its collection.
 
-    All-or-nothing: the export is fully validated (``osn_core.read_export``, then Blender loads
+    All-or-nothing: the export is fully validated (``scenecore.export_format.read_export``, then Blender loads
     every volume) before anything is linked into the scene, and every datablock made is removed
     again if any step fails; the exception propagates with a message naming the bad file.
     """

@@ -7,7 +7,7 @@ from bpy.app.handlers import persistent
 from bpy.props import IntProperty, PointerProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import osn_core as core
+from ._kernel import export_format as core
 from . import scene_build as sb
 
 
@@ -42,7 +42,7 @@ class OSN_OT_import(bpy.types.Operator, ImportHelper):
 
 
 def _manifest_given(op: bpy.types.Operator) -> bool:
-    """Whether this call of ``op`` names an ``osn_export.json`` (:func:`osn_core.names_manifest`)."""
+    """Whether this call of ``op`` names an ``osn_export.json`` (:func:`scenecore.export_format.names_manifest`)."""
     return core.names_manifest(op.filepath, op.properties.is_property_set("filepath"))
 
 

@@ -10,8 +10,8 @@ import pytest
 
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
-    from benchgen.generate import generate
-    from benchgen.spec import load_preset
+    from benchgen.render.generate import generate
+    from benchgen.scene.spec import load_preset
 
     root = tmp_path_factory.mktemp("tiny_dataset") / "ds"
     summary = generate(load_preset("tiny"), root, progress=False)

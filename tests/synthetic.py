@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchgen.cameras import intrinsics_from_fov, look_at
-from benchgen.dataset import (
+from scenecore.cameras import intrinsics_from_fov, look_at
+from scenecore.dataset import (
     NO_OBJECT,
     Configuration,
     Frame,
@@ -19,7 +19,7 @@ from benchgen.dataset import (
     write_scene,
     write_valid_region,
 )
-from benchgen.validity import ValidRegion
+from scenecore.validity import ValidRegion
 
 
 def make_scene(width: int = 24, height: int = 16, T: int = 3, V: int = 2, K: int = 3, G: int = 2) -> Scene:

@@ -32,14 +32,14 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from benchgen import dataset as D
-from benchgen.spec import PRESET_DIR
-from benchgen.validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
-from osn.evaluate import composite_layers, Layer, masked_mse_matrix, psnr_from_mse, sample_configurations
-from osn.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
-from osn.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.softz import implied_segmentation, soft_segmentation_log
-from osn.volume import transmittance_weights
+from scenecore import dataset as D
+from benchgen.scene.spec import PRESET_DIR
+from scenecore.validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
+from osn.evaluate.evaluation import composite_layers, Layer, masked_mse_matrix, psnr_from_mse, sample_configurations
+from osn.preprocess.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
+from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
+from osn.model.softz import implied_segmentation, soft_segmentation_log
+from osn.model.volume import transmittance_weights
 from tests.synthetic import write_synthetic_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -394,9 +394,9 @@ def test_export_killed_keeps_previous_export_and_rerun_equals_it(trained: Path, 
 
 def test_half_written_export_is_rejected_by_the_reader(tmp_path: Path) -> None:
     """An export with a truncated or missing file (copied while being written, say) names the file."""
-    from blender_addon import osn_core as core
-    from osn.export import write_export
-    from tests.test_export_addon import make_export_scene
+    from scenecore import export_format as core
+    from osn.export.writer import write_export
+    from tests.osn.export.test_export_addon import make_export_scene
 
     export = tmp_path / "export"
     write_export(export, make_export_scene())
@@ -527,8 +527,8 @@ def test_transmittance_with_huge_infinite_and_nan_densities() -> None:
 def test_render_with_huge_density_and_near_close_to_zero() -> None:
     """A field saturated at an enormous density, rays starting 1e-9 in front of the camera, and
     16 copies of the object composited: colour, depth, opacity and segmentation stay finite."""
-    from osn.fields import FieldConfig, make_field
-    from osn.volume import ObjectRays, render
+    from osn.model.fields import FieldConfig, make_field
+    from osn.model.volume import ObjectRays, render
 
     field = make_field(FieldConfig(kind="dense", resolution=8, initial_resolution=8), torch.tensor([[-1.0, -1, 1], [1, 1, 3]]))
     with torch.no_grad():
@@ -608,7 +608,7 @@ def test_layered_compositing_and_masked_mse_limits() -> None:
 def test_nearly_empty_valid_set_falls_back_with_a_warning(trained: Path, caplog) -> None:
     """A scale network that rejects everything: sampling still returns N configurations, says
     how many fell back, and logs it (never an IndexError, never NaN)."""
-    from osn.run import load_run
+    from osn.model.run import load_run
 
     run = load_run(trained)
     with torch.no_grad():
@@ -622,7 +622,7 @@ def test_nearly_empty_valid_set_falls_back_with_a_warning(trained: Path, caplog)
 def test_partial_fallback_never_repeats_a_kept_sample(trained: Path) -> None:
     """When some candidates pass and the rest fall back, the fallback takes candidates that did
     not pass: every returned vector is distinct (a repeated one would inflate best-of-N)."""
-    from osn.run import load_run
+    from osn.model.run import load_run
 
     run = load_run(trained)
     first = run.scores(np.random.default_rng(0).random((4096, run.inputs.num_objects - 1)))
@@ -639,9 +639,9 @@ def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(
     with a message naming the object, instead of failing after all the work."""
     import dataclasses
 
-    from osn.evaluate import EvalConfig, evaluate
-    from osn.run import load_run
-    from osn.train import Evaluator, TrainConfig, Trainer
+    from osn.evaluate.evaluation import EvalConfig, evaluate
+    from osn.model.run import load_run
+    from osn.train.loop import Evaluator, TrainConfig, Trainer
 
     run = load_run(trained)
     original = run.inputs
@@ -679,7 +679,7 @@ def test_doc_table_names_real_tests() -> None:
     doc = DOC.read_text()
     named = set(re.findall(r"`(test_\w+)(?:\[[\w-]+\])?`", doc))
     defined = {}
-    for f in (REPO / "tests").glob("test_*.py"):
+    for f in (REPO / "tests").rglob("test_*.py"):
         for name in re.findall(r"^def (test_\w+)", f.read_text(), flags=re.M):
             defined[name] = f.name
     assert not named - set(defined), f"named in the doc but not defined: {sorted(named - set(defined))}"
@@ -691,8 +691,8 @@ def test_rendered_depth_is_infinite_where_nothing_is_hit(trained: Path) -> None:
     """A rendered pixel with (almost) no opacity has no surface: its depth is +inf, as in the
     dataset format, so SSIMAE skips it; before, ``depth / acc`` put a surface near the camera
     there and a few such pixels moved SSIMAE of a perfect depth map to 0.5."""
-    from osn import metrics as M
-    from osn.run import EMPTY_ACC, load_run
+    from benchgen.score import metrics as M
+    from osn.model.run import EMPTY_ACC, load_run
 
     run = load_run(trained)
     layer = run.render_view(None, 0, np.ones(run.inputs.num_objects), objects=[1])  # one small object
@@ -709,8 +709,8 @@ def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_d
     """Eq. 1's box does not know the benchmark's scale range: the tiny preset's configurations 1
     and 2 put the ball 0.9% of its range below the box. Evaluation counts them (they can only be
     approached from the edge) instead of letting that cap hide in the averages."""
-    from osn.evaluate import ground_truth_outside_box
-    from osn.run import load_run
+    from osn.evaluate.evaluation import ground_truth_outside_box
+    from osn.model.run import load_run
 
     run = load_run(trained)
     scales = np.stack([c.scales for c in D.load_configurations(tiny_dataset)])
@@ -740,8 +740,8 @@ def test_validity_profile_walks_one_scale_through_its_range(trained: Path, tiny_
     """The report's validity profile: object k's scale runs over its whole Eq. 1 range (in
     dataset scales), the others stay at the reference; scores are the network's at exactly
     those vectors, and the exact flags are the region's own verdicts there."""
-    from osn.evaluate import validity_profile
-    from osn.run import load_run
+    from osn.evaluate.evaluation import validity_profile
+    from osn.model.run import load_run
 
     run = load_run(trained)
     region = D.load_valid_region(tiny_dataset)

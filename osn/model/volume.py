@@ -1,0 +1,215 @@
+"""Volume rendering of one object alone or of K scaled objects composited (Total-Recon style).
+
+Rays are given in the *camera frame* of a training frame (or any camera expressed relative to
+one): ``dirs_cam (R, 3)`` from :func:`scenecore.cameras.pixel_rays` with unit camera z, so the ray
+parameter ``t`` is the planar depth. For a configuration ``sbar`` (``sbar_anchor = 1``, scene
+unit = anchor unit) object k sees the ray ``o_k + t * v_k`` with ``o_k = cam_to_obj_k[:3, 3]`` and
+``v_k = R_k dirs_cam / sbar_k`` (see :mod:`osn.inputs`), so a single ``t`` is shared by all
+objects and is the scene-space planar depth.
+
+Composite rendering follows Total-Recon: total density is the sum of the objects' densities and
+colour the density-weighted mix. Each object is sampled only inside its own box interval (empty
+space and absent objects cost nothing) and the union of all samples is merged in ``t`` order;
+because each sample carries one object's density, the merged quadrature is exactly the
+density-sum / density-weighted-colour rule. The segmentation is each object's share of the
+weights, returned as log-probabilities so a cross-entropy never takes the log of a probability.
+
+Transmittance is ``exp(-exclusive_cumsum(sigma * delta))`` with optical thicknesses clamped to
+a finite range, so huge densities, empty rays and zero-length intervals stay finite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from osn.model.fields import Field
+
+#: Optical thickness of one sample is clamped here: exp(-1e4) is already 0, inf would give NaN.
+MAX_OPTICAL = 1e4
+#: Floor of a segmentation probability (keeps the log finite on rays no object reaches).
+SEG_EPS = 1e-8
+
+
+@dataclass
+class RenderOutput:
+    """Per-ray results. ``depth`` is the weight-summed planar depth (not divided by ``acc``).
+
+    Attributes:
+        rgb: ``(R, 3)`` colour composited over the background.
+        depth: ``(R,)`` expected planar depth ``sum_i w_i t_i`` in the rays' ``t`` unit.
+        acc: ``(R,)`` accumulated opacity in [0, 1].
+        log_seg: ``(R, K)`` log of each object's share of the weights (soft segmentation).
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    acc: torch.Tensor
+    log_seg: torch.Tensor
+
+    def normalised_depth(self) -> torch.Tensor:
+        """Depth of the visible surface, ``depth / acc`` (guarded where nothing is hit)."""
+        return self.depth / self.acc.clamp_min(1e-6)
+
+
+def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab intersection of rays ``o + t v`` with an axis-aligned box ``(2, 3)``.
+
+    Returns ``(t0, t1)``; the ray misses when ``t1 <= t0``. Zero direction components are
+    replaced by a tiny value of the same sign so the slab test stays finite.
+    """
+    tiny = 1e-12
+    v = torch.where(dirs.abs() < tiny, torch.full_like(dirs, tiny) * torch.where(dirs < 0, -1.0, 1.0), dirs)
+    ta = (bbox[0] - origins) / v
+    tb = (bbox[1] - origins) / v
+    t0 = torch.minimum(ta, tb).amax(-1)
+    t1 = torch.maximum(ta, tb).amin(-1)
+    return t0, t1
+
+
+def transmittance_weights(optical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weights and log-weights of ordered samples with optical thickness ``(R, S)`` (>= 0).
+
+    ``w_i = T_i (1 - exp(-tau_i))`` with ``log T_i = -sum_{j<i} tau_j`` (exclusive cumsum, no
+    subtraction so no ``inf - inf``). ``log_w`` is floored at ``log(1e-30)`` for the opacity
+    term, so it is finite and its gradient never meets ``log(0)`` (``0 * inf = NaN``).
+    """
+    tau = torch.nan_to_num(optical, nan=0.0, posinf=MAX_OPTICAL).clamp(0.0, MAX_OPTICAL)
+    csum = torch.cumsum(tau, dim=-1)
+    log_t = -torch.cat([torch.zeros_like(csum[..., :1]), csum[..., :-1]], dim=-1)
+    alpha = -torch.expm1(-tau)
+    w = torch.exp(log_t) * alpha
+    log_w = log_t + torch.log(alpha.clamp_min(1e-30))
+    return w, log_w
+
+
+@dataclass
+class ObjectRays:
+    """One object's view of a ray batch.
+
+    Attributes:
+        field: the object's field.
+        cam_to_obj: ``(R, 4, 4)`` similarity from each ray's camera frame (ray units) to the
+            object, e.g. ``cam_to_obj_k[n] @ diag(1/sbar_k)`` for training frame n, or
+            :func:`osn.placement.object_transforms` for a novel camera; any value where absent.
+        present: ``(R,)`` bool, False where the object has no pose in the ray's frame.
+        t_range: ``(R, 2)`` or ``(2,)`` planar-depth range (ray units) the object is sampled in,
+            intersected with its box.
+    """
+
+    field: Field
+    cam_to_obj: torch.Tensor
+    present: torch.Tensor
+    t_range: torch.Tensor
+
+
+def _object_samples(
+    obj: ObjectRays, dirs_cam: torch.Tensor, n_samples: int, generator: torch.Generator | None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stratified samples of one object: ``(t (R,S), delta_len (R,S), points (R,S,3), view (R,3), ok (R,))``.
+
+    ``delta_len`` is each sample's interval length in the object's own unit of length, so a
+    field's opacity does not change when the object is scaled.
+    """
+    A = obj.cam_to_obj[:, :3, :3]
+    o = obj.cam_to_obj[:, :3, 3]
+    v = torch.einsum("rij,rj->ri", A, dirs_cam)
+    t0, t1 = ray_box(o, v, obj.field.bbox)
+    rng = obj.t_range.expand(dirs_cam.shape[0], 2)
+    t0 = torch.maximum(t0, rng[:, 0])
+    t1 = torch.minimum(t1, rng[:, 1])
+    ok = obj.present & (t1 > t0)
+    t1 = torch.where(ok, t1, t0)  # zero-length interval where missed: all samples collapse
+    R = dirs_cam.shape[0]
+    if generator is None:
+        u = torch.full((R, n_samples), 0.5, device=dirs_cam.device)
+    else:
+        u = torch.rand(R, n_samples, generator=generator, device=generator.device).to(dirs_cam.device)
+    u = (torch.arange(n_samples, device=dirs_cam.device) + u) / n_samples
+    span = (t1 - t0)[:, None]
+    t = t0[:, None] + span * u
+    vnorm = v.norm(dim=-1, keepdim=True)
+    delta_len = (span / n_samples * vnorm).expand(R, n_samples)
+    pts = o[:, None, :] + t[..., None] * v[:, None, :]
+    view = v / vnorm.clamp_min(1e-12)
+    return t, delta_len, pts, view, ok
+
+
+def render(
+    objects: Sequence[ObjectRays],
+    dirs_cam: torch.Tensor,
+    n_samples: int,
+    generator: torch.Generator | None = None,
+    background: torch.Tensor | None = None,
+    skip_occluded: float = 0.0,
+) -> RenderOutput:
+    """Render a ray batch of K objects composited (a single object = rendering it alone).
+
+    The configuration (scales) is folded into each object's ``cam_to_obj`` similarity; ``t``
+    and the returned depth are in the ray camera's unit (scene units for a configuration,
+    the object's own unit when one object is rendered with its rigid pose).
+
+    Args:
+        objects: per object its field, camera-to-object similarity, presence and depth range.
+        dirs_cam: ``(R, 3)`` camera-frame directions with unit z.
+        n_samples: stratified samples per object inside its box interval.
+        generator: jitter source (None = interval midpoints, deterministic evaluation).
+        background: ``(3,)`` colour behind everything (default black).
+        skip_occluded: when > 0, a gradient-free density pass first finds samples whose
+            transmittance is below this value; only the others are evaluated with gradients
+            and colour (their omission changes ``acc`` by less than ``skip_occluded``).
+    """
+    R, K, S = dirs_cam.shape[0], len(objects), n_samples
+    dev = dirs_cam.device
+    samples = [_object_samples(obj, dirs_cam, S, generator) for obj in objects]
+    t_all = torch.cat([torch.where(s[4][:, None], s[0], torch.full_like(s[0], float("inf"))) for s in samples], 1)
+    order = torch.argsort(t_all, dim=1)
+
+    keep = [s[4][:, None].expand(R, S) for s in samples]
+    if skip_occluded > 0:
+        with torch.no_grad():
+            tau = torch.zeros(R, K * S, device=dev)
+            for k, (obj, s) in enumerate(zip(objects, samples)):
+                m = keep[k]
+                sig = torch.zeros(R, S, device=dev)
+                if m.any():
+                    sig[m] = obj.field.density(s[2][m])
+                tau[:, k * S : (k + 1) * S] = sig * s[1]
+            tau_sorted = torch.gather(tau, 1, order).clamp(0.0, MAX_OPTICAL)
+            csum = torch.cumsum(tau_sorted, 1)
+            excl = torch.cat([torch.zeros_like(csum[:, :1]), csum[:, :-1]], 1)
+            visible_sorted = torch.exp(-excl) > skip_occluded
+            visible = torch.empty_like(visible_sorted).scatter_(1, order, visible_sorted)
+            keep = [keep[k] & visible[:, k * S : (k + 1) * S] for k in range(K)]
+
+    taus, cols = [], []
+    for k, (obj, s) in enumerate(zip(objects, samples)):
+        m = keep[k]
+        sig = torch.zeros(R, S, device=dev)
+        col = torch.zeros(R, S, 3, device=dev)
+        if m.any():
+            view = s[3][:, None, :].expand(R, S, 3)[m]
+            sg, cl = obj.field.density_and_color(s[2][m], view)
+            sig = sig.masked_scatter(m, sg)
+            col = col.masked_scatter(m[..., None].expand(R, S, 3), cl)
+        taus.append(sig * s[1])
+        cols.append(col)
+    tau = torch.gather(torch.cat(taus, 1), 1, order)
+    col = torch.gather(torch.cat(cols, 1), 1, order[..., None].expand(R, K * S, 3))
+    t_sorted = torch.gather(t_all, 1, order)
+    t_sorted = torch.where(torch.isfinite(t_sorted), t_sorted, torch.zeros_like(t_sorted))
+    obj_id = torch.gather(torch.arange(K, device=dev).repeat_interleave(S).expand(R, K * S), 1, order)
+
+    w, log_w = transmittance_weights(tau)
+    acc = w.sum(1)
+    bg = background if background is not None else torch.zeros(3, device=dev)
+    rgb = (w[..., None] * col).sum(1) + (1.0 - acc)[:, None] * bg
+    depth = (w * t_sorted).sum(1)
+    # A finite fill (not -inf): logsumexp's gradient is NaN when all its inputs are -inf.
+    log_share = torch.stack([torch.where(obj_id == k, log_w, torch.full_like(log_w, -1e30)).logsumexp(1) for k in range(K)], 1)
+    # eps floor: rays that hit nothing get a uniform, finite segmentation instead of NaN.
+    log_share = torch.logaddexp(log_share, torch.full_like(log_share, torch.log(torch.tensor(SEG_EPS)).item()))
+    log_seg = log_share - log_share.logsumexp(1, keepdim=True)
+    return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)

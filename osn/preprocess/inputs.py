@@ -1,0 +1,478 @@
+"""Per-object inputs of OSN, and the ``oracle`` preprocessing that derives them from ground truth.
+
+OSN never sees a shared metric scene. For every object k it gets what per-object SfM would give:
+camera-to-object poses for the frames where k is seen, sparse planar depths at some of its
+pixels, both in k's *own unknown unit*, plus the instance masks. This module owns that format
+(``inputs.json`` + ``inputs.npz`` in a directory) and the ``oracle`` path, which computes the same
+quantities from a benchgen dataset's ground truth. The oracle separates learning errors from SfM
+errors; ``osn preprocess`` (pycolmap) writes the same format from images alone.
+
+Conventions:
+* Object coordinates: the OpenCV camera frame of the object's first frame, in the object's own
+  unit (the oracle picks the unit that makes its median sparse depth 1, as an SfM
+  reconstruction normalised by its points would). Poses ``cam_to_obj`` are rigid in that unit.
+* A configuration with actual (de-normalised) scales ``sbar`` puts a camera-frame point ``x``
+  (scene units = the anchor's unit) into object k at ``cam_to_obj_k[n] @ (x / sbar_k)``:
+  scaling about the training camera centre, exactly as benchgen defines a configuration.
+* Eq. 1 of the paper maps a normalised scale ``s`` in [0, 1) to
+  ``sbar = scene_near / near_k * (1 - s) + scene_far / far_k * s`` (:func:`denormalise_scales`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from scenecore import dataset as D
+from scenecore.cameras import invert_pose, pixel_rays
+
+#: Mask value of pixels that no loss may use (objects dropped by preprocessing).
+IGNORE_ID = 254
+
+INPUTS_FORMAT = "osn-inputs"
+INPUTS_VERSION = 1
+
+
+class InputsError(ValueError):
+    """Per-object inputs are missing, malformed or degenerate (message names file and problem)."""
+
+
+@dataclass
+class ObjectInputs:
+    """Everything OSN learns object ``id`` from, in the object's own unit.
+
+    Attributes:
+        id, name: as in the dataset (``id`` indexes the instance masks).
+        frames: ``(F,)`` time indices of the training frames used for this object.
+        cam_to_obj: ``(F, 4, 4)`` rigid camera-to-object poses (OpenCV camera frame).
+        near, far: range of the object's planar depths over its frames, object units.
+        bbox: ``(2, 3)`` min / max corner of the canonical box holding the object's field.
+        sparse_pix: per frame, ``(M, 2)`` int pixel indices ``(u, v)`` with a sparse depth.
+        sparse_depth: per frame, ``(M,)`` planar depth in object units.
+        sparse_weight: per frame, ``(M,)`` confidence (1 for the oracle).
+        unit_to_world: metres per object unit; ground truth known only to the oracle, used for
+            evaluation (relative scale error, valid-set IoU), never for training.
+    """
+
+    id: int
+    name: str
+    frames: np.ndarray
+    cam_to_obj: np.ndarray
+    near: float
+    far: float
+    bbox: np.ndarray
+    sparse_pix: list[np.ndarray]
+    sparse_depth: list[np.ndarray]
+    sparse_weight: list[np.ndarray]
+    unit_to_world: float | None = None
+
+    def frame_slot(self, time_index: int) -> int | None:
+        """Position of ``time_index`` in ``frames`` or None when the object is not used there."""
+        hit = np.nonzero(self.frames == time_index)[0]
+        return int(hit[0]) if len(hit) else None
+
+
+@dataclass
+class SceneInputs:
+    """The whole input of OSN for one video."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    timestamps: np.ndarray
+    images: np.ndarray  # (T, H, W, 3) uint8
+    masks: np.ndarray  # (T, H, W) uint8, NO_OBJECT = none
+    objects: list[ObjectInputs]
+    anchor: int
+    scene_near: float
+    scene_far: float
+    world_to_anchor: np.ndarray | None = None  # similarity: dataset world -> anchor coordinates
+    source: str = "oracle"
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.objects)
+
+    @property
+    def anchor_pos(self) -> int:
+        """Position of the anchor in ``objects`` (``anchor`` is its id, as in the masks)."""
+        for k, o in enumerate(self.objects):
+            if o.id == self.anchor:
+                return k
+        raise InputsError(f"the anchor (object {self.anchor}) is not among the objects {[o.id for o in self.objects]}")
+
+    def object(self, object_id: int) -> ObjectInputs:
+        """The inputs of object ``object_id`` (ids index the masks; dropped objects are absent)."""
+        for o in self.objects:
+            if o.id == object_id:
+                return o
+        raise InputsError(f"no inputs for object {object_id}")
+
+    def scale_ranges(self) -> np.ndarray:
+        """``(K, 2)`` de-normalised scale range ``[sbar(0), sbar(1)]`` of every object (Eq. 1)."""
+        return np.array([scale_range(self.scene_near, self.scene_far, o.near, o.far) for o in self.objects])
+
+    def true_scales(self, actual_scales: np.ndarray) -> np.ndarray:
+        """Convert actual (dataset) scales to this input's de-normalised scales ``sbar``.
+
+        ``sbar_k = s_k * unit_k / unit_anchor``; needs the oracle's ``unit_to_world``.
+        """
+        u = self._units()
+        return np.asarray(actual_scales) * u / u[self.anchor_pos]
+
+    def actual_scales(self, sbar: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`true_scales`: de-normalised scales to dataset scales."""
+        u = self._units()
+        return np.asarray(sbar) * u[self.anchor_pos] / u
+
+    def ground_truth_problem(self, test_views: bool = True) -> str | None:
+        """Why these inputs cannot be compared with ground truth (None when they can): every
+        object needs its metres per unit (scales, the valid set) and, with ``test_views``, the
+        scene its world-to-anchor similarity (to place test cameras). The oracle has both; SfM
+        has them once aligned, unless an alignment failed."""
+        missing = [f"{o.id} ({o.name})" for o in self.objects if o.unit_to_world is None]
+        if missing:
+            return f"object(s) {', '.join(missing)} have no ground-truth unit (no oracle, or their SfM alignment failed)"
+        if test_views and self.world_to_anchor is None:
+            return "no world-to-anchor alignment, so test cameras cannot be placed"
+        return None
+
+    def _units(self) -> np.ndarray:
+        u = [o.unit_to_world for o in self.objects]
+        if any(x is None for x in u):
+            raise InputsError("these inputs carry no ground-truth units (not from the oracle or aligned SfM)")
+        return np.array(u, dtype=np.float64)
+
+
+def scale_range(scene_near: float, scene_far: float, near: float, far: float) -> tuple[float, float]:
+    """Eq. 1's range for one object; raises instead of ever returning an inverted range."""
+    vals = (scene_near, scene_far, near, far)
+    if not all(np.isfinite(v) and v > 0 for v in vals):
+        raise InputsError(f"near/far must be finite and positive, got scene {scene_near}, {scene_far}, object {near}, {far}")
+    lo, hi = scene_near / near, scene_far / far
+    if not lo < hi:
+        raise InputsError(
+            f"empty scale range [{lo:.4g}, {hi:.4g}]: the scene volume [{scene_near:.4g}, {scene_far:.4g}] "
+            f"must be deeper (far/near) than the object's [{near:.4g}, {far:.4g}]"
+        )
+    return lo, hi
+
+
+def denormalise_scales(s: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Eq. 1: normalised scales ``s`` in [0, 1) ``(..., K)`` to actual ``sbar`` given ``ranges (K, 2)``."""
+    return ranges[:, 0] * (1.0 - s) + ranges[:, 1] * s
+
+
+def normalise_scales(sbar: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`denormalise_scales`."""
+    return (sbar - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
+
+
+# --------------------------------------------------------------------------------------------
+# Storage
+# --------------------------------------------------------------------------------------------
+
+
+def save_inputs(out_dir: str | Path, inputs: SceneInputs) -> None:
+    """Write ``inputs.json`` and ``inputs.npz`` atomically (npz first, json last = complete)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {"K": inputs.K, "timestamps": inputs.timestamps, "images": inputs.images, "masks": inputs.masks}
+    if inputs.world_to_anchor is not None:
+        arrays["world_to_anchor"] = inputs.world_to_anchor
+    objs = []
+    for o in inputs.objects:
+        p = f"obj{o.id}_"
+        arrays[p + "frames"] = o.frames
+        arrays[p + "cam_to_obj"] = o.cam_to_obj
+        arrays[p + "bbox"] = o.bbox
+        counts = np.array([len(d) for d in o.sparse_depth], dtype=np.int64)
+        arrays[p + "sparse_counts"] = counts
+        arrays[p + "sparse_pix"] = np.concatenate(o.sparse_pix) if len(counts) else np.zeros((0, 2), np.int64)
+        arrays[p + "sparse_depth"] = np.concatenate(o.sparse_depth) if len(counts) else np.zeros(0)
+        arrays[p + "sparse_weight"] = np.concatenate(o.sparse_weight) if len(counts) else np.zeros(0)
+        objs.append({"id": o.id, "name": o.name, "near": o.near, "far": o.far, "unit_to_world": o.unit_to_world})
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    D.atomic_write_bytes(out / "inputs.npz", buf.getvalue())
+    D.atomic_write_json(
+        out / "inputs.json",
+        {
+            "format": INPUTS_FORMAT,
+            "version": INPUTS_VERSION,
+            "source": inputs.source,
+            "width": inputs.width,
+            "height": inputs.height,
+            "anchor": inputs.anchor,
+            "scene_near": inputs.scene_near,
+            "scene_far": inputs.scene_far,
+            "objects": objs,
+            "meta": inputs.meta,
+        },
+    )
+
+
+def load_inputs(in_dir: str | Path) -> SceneInputs:
+    """Read inputs written by :func:`save_inputs`; raise ``InputsError`` naming the bad file."""
+    d = Path(in_dir)
+    meta = D.read_json(d / "inputs.json")
+    if not isinstance(meta, dict):
+        raise InputsError(f"{d / 'inputs.json'}: not {INPUTS_FORMAT} v{INPUTS_VERSION} (a JSON {type(meta).__name__}, not an object)")
+    if meta.get("format") != INPUTS_FORMAT or meta.get("version") != INPUTS_VERSION:
+        raise InputsError(f"{d / 'inputs.json'}: not {INPUTS_FORMAT} v{INPUTS_VERSION} (found {meta.get('format')!r} v{meta.get('version')!r})")
+    try:
+        z = np.load(d / "inputs.npz")
+        arr = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise InputsError(f"{d / 'inputs.npz'}: missing file") from None
+    except Exception as e:
+        raise InputsError(f"{d / 'inputs.npz'}: cannot read ({e})") from None
+    try:
+        inputs = _inputs_from(meta, arr)
+    except KeyError as e:
+        # Arrays are named "K", "images", ..., "obj<id>_<what>"; anything else is a JSON key.
+        key = str(e.args[0]) if e.args else "?"
+        npz = key in ("K", "timestamps", "images", "masks") or (key.startswith("obj") and "_" in key)
+        where = d / ("inputs.npz" if npz else "inputs.json")
+        raise InputsError(f"{where}: missing {key!r} (written by another version, or damaged)") from None
+    except (TypeError, ValueError) as e:
+        raise InputsError(f"{d / 'inputs.json'}: malformed ({e})") from None
+    check_inputs(inputs, d)
+    return inputs
+
+
+def _inputs_from(meta: dict[str, Any], arr: dict[str, np.ndarray]) -> SceneInputs:
+    """Assemble :class:`SceneInputs` from the parsed ``inputs.json`` and ``inputs.npz`` arrays."""
+    objects = []
+    for o in meta["objects"]:
+        p = f"obj{o['id']}_"
+        counts = arr[p + "sparse_counts"]
+        splits = np.cumsum(counts)[:-1]
+        objects.append(
+            ObjectInputs(
+                id=int(o["id"]),
+                name=o["name"],
+                frames=arr[p + "frames"],
+                cam_to_obj=arr[p + "cam_to_obj"],
+                near=float(o["near"]),
+                far=float(o["far"]),
+                bbox=arr[p + "bbox"],
+                sparse_pix=np.split(arr[p + "sparse_pix"], splits),
+                sparse_depth=np.split(arr[p + "sparse_depth"], splits),
+                sparse_weight=np.split(arr[p + "sparse_weight"], splits),
+                unit_to_world=o.get("unit_to_world"),
+            )
+        )
+    return SceneInputs(
+        width=int(meta["width"]),
+        height=int(meta["height"]),
+        K=arr["K"],
+        timestamps=arr["timestamps"],
+        images=arr["images"],
+        masks=arr["masks"],
+        objects=objects,
+        anchor=int(meta["anchor"]),
+        scene_near=float(meta["scene_near"]),
+        scene_far=float(meta["scene_far"]),
+        world_to_anchor=arr.get("world_to_anchor"),
+        source=meta.get("source", "unknown"),
+        meta=meta.get("meta", {}),
+    )
+
+
+def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
+    """Raise ``InputsError`` on shapes, an unknown anchor, frames outside the video, sparse
+    pixels outside the image, empty boxes, non-finite poses or inverted ranges."""
+    T = len(inputs.timestamps)
+    if inputs.images.shape != (T, inputs.height, inputs.width, 3):
+        raise InputsError(f"{where}: images have shape {inputs.images.shape}, expected {(T, inputs.height, inputs.width, 3)}")
+    if inputs.masks.shape != (T, inputs.height, inputs.width):
+        raise InputsError(f"{where}: masks have shape {inputs.masks.shape}")
+    if not inputs.objects:
+        raise InputsError(f"{where}: no objects")
+    try:
+        _ = inputs.anchor_pos
+    except InputsError as e:
+        raise InputsError(f"{where}: {e}") from None
+    for o in inputs.objects:
+        label = f"object {o.id} ({o.name})"
+        if len(o.frames) == 0:
+            raise InputsError(f"{where}: {label} has no frames")
+        if np.any(o.frames < 0) or np.any(o.frames >= T):
+            raise InputsError(f"{where}: {label} uses frames outside 0..{T - 1}")
+        if o.cam_to_obj.shape != (len(o.frames), 4, 4) or not np.all(np.isfinite(o.cam_to_obj)):
+            raise InputsError(f"{where}: {label} has malformed or non-finite poses")
+        box = np.asarray(o.bbox, dtype=np.float64)
+        if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+            raise InputsError(f"{where}: {label} has an empty or malformed box {box.tolist()}")
+        if not (len(o.sparse_pix) == len(o.sparse_depth) == len(o.sparse_weight) == len(o.frames)):
+            raise InputsError(f"{where}: {label} needs one sparse-depth entry per frame")
+        for pix in o.sparse_pix:
+            pix = np.asarray(pix).reshape(-1, 2)
+            if np.any(pix < 0) or np.any(pix[:, 0] >= inputs.width) or np.any(pix[:, 1] >= inputs.height):
+                raise InputsError(f"{where}: {label} has sparse pixels outside the {inputs.width}x{inputs.height} image")
+        scale_range(inputs.scene_near, inputs.scene_far, o.near, o.far)
+
+
+def scene_volume(objects: list[ObjectInputs], near_factor: float, far_factor: float) -> tuple[float, float]:
+    """Scene near/far of Eq. 1: below every object's near and beyond every object's far."""
+    if not (0 < near_factor < 1 <= far_factor):
+        raise InputsError(f"scene volume factors must satisfy 0 < near ({near_factor}) < 1 <= far ({far_factor})")
+    return near_factor * min(o.near for o in objects), far_factor * max(o.far for o in objects)
+
+
+def object_inputs_from_observations(
+    object_id: int,
+    name: str,
+    frames: np.ndarray,
+    cam_to_obj: np.ndarray,
+    sparse_pix: list[np.ndarray],
+    sparse_depth: list[np.ndarray],
+    sparse_weight: list[np.ndarray],
+    K: np.ndarray,
+    width: int,
+    height: int,
+    box_padding: float,
+    metres_per_unit: float | None,
+) -> ObjectInputs:
+    """Normalise one object's poses and sparse depths (any unit) into :class:`ObjectInputs`.
+
+    Shared by the oracle and SfM so both produce identical conventions: the object frame becomes
+    the camera of its first frame, the unit makes the median sparse depth 1, near/far come from
+    robust percentiles of the depths, and the canonical box from percentiles of the points.
+
+    Args:
+        cam_to_obj: ``(F, 4, 4)`` rigid camera-to-object poses in the input unit.
+        metres_per_unit: metres per input unit when known (ground truth), else None.
+    """
+    all_d = np.concatenate(sparse_depth) if sparse_depth else np.zeros(0)
+    if len(all_d) == 0 or not np.all(np.isfinite(all_d)) or np.any(all_d <= 0):
+        raise InputsError(f"object {object_id} ({name}): no usable positive sparse depths")
+    unit = float(np.median(all_d))
+    ref_inv = invert_pose(cam_to_obj[0])
+    poses = ref_inv[None] @ cam_to_obj  # camera t -> camera-of-first-frame, input unit, rigid
+    poses[:, :3, 3] /= unit
+    depths = [np.asarray(d, dtype=np.float64) / unit for d in sparse_depth]
+    pts = []
+    for pix, dep, M in zip(sparse_pix, depths, poses):
+        o, d = pixel_rays(K, np.eye(4), width, height, pixels=pix)
+        p_cam = o + dep[:, None] * d
+        pts.append(p_cam @ M[:3, :3].T + M[:3, 3])
+    pts_a = np.concatenate(pts)
+    lo, hi = np.percentile(pts_a, 0.5, axis=0), np.percentile(pts_a, 99.5, axis=0)
+    # Pad every axis, also a flat one (a wall): at least a small fraction of the largest extent.
+    pad = box_padding * np.maximum(hi - lo, 1e-2 * float(np.max(hi - lo)))
+    all_u = all_d / unit
+    near, far = float(np.percentile(all_u, 0.5)) * 0.9, float(np.percentile(all_u, 99.5)) * 1.1
+    return ObjectInputs(
+        id=object_id,
+        name=name,
+        frames=np.asarray(frames, dtype=np.int64),
+        cam_to_obj=poses,
+        near=near,
+        far=far,
+        bbox=np.stack([lo - pad, hi + pad]),
+        sparse_pix=[np.asarray(p, dtype=np.int64) for p in sparse_pix],
+        sparse_depth=depths,
+        sparse_weight=[np.asarray(w, dtype=np.float64) for w in sparse_weight],
+        unit_to_world=None if metres_per_unit is None else unit * metres_per_unit,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Oracle preprocessing
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class OracleConfig:
+    """Options of the oracle preprocessing.
+
+    Attributes:
+        points_per_frame: sparse depths kept per object and frame (SfM-like density).
+        min_pixels: an object is used in a frame only if it covers at least this many pixels.
+        scene_near_factor, scene_far_factor: the scene volume is
+            ``[factor_near * min_k near_k, factor_far * max_k far_k]`` in object units (Eq. 1).
+        box_padding: relative padding of each object's canonical box around its points.
+        seed: random seed of the sparse subsampling.
+    """
+
+    points_per_frame: int = 256
+    min_pixels: int = 16
+    scene_near_factor: float = 0.3
+    scene_far_factor: float = 1.5
+    box_padding: float = 0.1
+    seed: int = 0
+
+
+def oracle_inputs(
+    dataset_root: str | Path,
+    cfg: OracleConfig | None = None,
+    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> SceneInputs:
+    """Derive per-object inputs from a benchgen dataset's ground truth (see module docstring).
+
+    ``video``: the dataset's :func:`scenecore.dataset.read_training_video`, when the caller has
+    read it already (it is read here otherwise).
+    """
+    cfg = cfg or OracleConfig()
+    root = Path(dataset_root)
+    scene = D.load_scene(root)
+    rng = np.random.default_rng(cfg.seed)
+    T = len(scene.timestamps)
+    train = sorted(scene.train_frames, key=lambda f: f.time_index)
+    images_a, depths_a, masks_a = video if video is not None else D.read_training_video(root, scene)  # names bad files
+    K = scene.intrinsics.matrix()
+    c2w = np.stack([f.camera_to_world for f in train])
+
+    objects: list[ObjectInputs] = []
+    for obj in scene.objects:
+        frames = [t for t in range(T) if (masks_a[t] == obj.id).sum() >= cfg.min_pixels]
+        if not frames:
+            raise InputsError(f"{root}: object {obj.id} ({obj.name}) covers fewer than {cfg.min_pixels} pixels in every training frame")
+        pix_l, dep_l = [], []
+        for t in frames:
+            v, u = np.nonzero(masks_a[t] == obj.id)
+            n = min(cfg.points_per_frame, len(u))
+            pick = np.sort(rng.choice(len(u), size=n, replace=False))
+            pix_l.append(np.stack([u[pick], v[pick]], axis=1).astype(np.int64))
+            dep_l.append(depths_a[t][v[pick], u[pick]].astype(np.float64))
+        # Object frame = camera of the first frame (the object's body frame seen from there).
+        obj_from_world = [invert_pose(obj.poses[t]) for t in frames]
+        cam_to_body = np.stack([ofw @ c2w[t] for t, ofw in zip(frames, obj_from_world)])
+        objects.append(
+            object_inputs_from_observations(
+                obj.id, obj.name, np.array(frames), cam_to_body, pix_l, dep_l, [np.ones(len(d)) for d in dep_l],
+                K, scene.width, scene.height, cfg.box_padding, metres_per_unit=1.0,
+            )
+        )
+    scene_near, scene_far = scene_volume(objects, cfg.scene_near_factor, cfg.scene_far_factor)
+    anchor = objects[scene.anchor_id]
+    # Anchor coordinates from the world (the anchor is static in benchgen scenes): similarity.
+    a_obj = scene.objects[scene.anchor_id]
+    t0 = int(anchor.frames[0])
+    w2a = invert_pose(invert_pose(a_obj.poses[t0]) @ c2w[t0]) @ invert_pose(a_obj.poses[t0])
+    S = np.diag([1 / anchor.unit_to_world] * 3 + [1.0])
+    inputs = SceneInputs(
+        width=scene.width,
+        height=scene.height,
+        K=K,
+        timestamps=scene.timestamps.copy(),
+        images=images_a,
+        masks=masks_a,
+        objects=objects,
+        anchor=scene.anchor_id,
+        scene_near=scene_near,
+        scene_far=scene_far,
+        world_to_anchor=S @ w2a,
+        source="oracle",
+        meta={"dataset": str(root), "oracle": cfg.__dict__},
+    )
+    check_inputs(inputs, root)
+    return inputs

@@ -1,0 +1,329 @@
+"""Numerical behaviour of the OSN building blocks: fields, volume rendering, soft Z-buffer, scale net."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
+from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
+from osn.model.softz import implied_segmentation, order_constraints, soft_segmentation_log, softz_labels, trimmed_labels, validity_labels
+from osn.model.volume import ObjectRays, ray_box, render, transmittance_weights
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def _solid(field: DenseGridField, raw_density: float, rgb: tuple[float, float, float]) -> DenseGridField:
+    with torch.no_grad():
+        field.grid[:, 0] = raw_density
+        field.grid[:, 1:] = torch.logit(torch.tensor(rgb))
+    return field
+
+
+def _rays(n: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    d = 0.02 * torch.randn(n, 3, generator=g)  # narrow cone: every ray hits every test box
+    d[:, 2] = 1.0
+    return d
+
+
+def _obj(field, z: float, n: int, scale: float = 1.0) -> ObjectRays:
+    """Object box centred ``z`` ahead of the camera, the object scaled by ``scale`` about the camera."""
+    P = torch.eye(4)
+    P[2, 3] = -z / scale
+    P[:3, :3] /= scale
+    return ObjectRays(field, P.expand(n, 4, 4), torch.ones(n, dtype=torch.bool), torch.tensor([1e-3, 1e6]))
+
+
+def test_trilinear_matches_grid_sample() -> None:
+    g = torch.Generator().manual_seed(0)
+    r = 9
+    grid = torch.randn(4, r, r, r, generator=g)
+    x = torch.rand(500, 3, generator=g) * 2 - 1
+    ref = torch.nn.functional.grid_sample(grid[None], x.view(1, 1, 1, -1, 3), align_corners=True).reshape(4, -1).T
+    ours = trilinear(grid.permute(1, 2, 3, 0).reshape(-1, 4), r, x)
+    assert torch.allclose(ours, ref, atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["dense", "tensorf"])
+def test_set_resolution_keeps_the_field(kind: str) -> None:
+    f = make_field(FieldConfig(kind=kind, resolution=12, initial_resolution=12), BOX, seed=1)
+    with torch.no_grad():  # a smooth, non-trivial field (densities up to ~0.15 dense, ~30 TensoRF)
+        for p in f.parameters():
+            p.add_(3.0 * torch.sin(0.05 * torch.arange(p.numel(), dtype=torch.float32)).reshape(p.shape))
+    x = torch.rand(200, 3, generator=torch.Generator().manual_seed(2)) * 1.6 - 0.8
+    dirs = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(3)), dim=-1)
+    with torch.no_grad():
+        before, before_rgb = f.density(x), f.color(x, dirs)
+        f.set_resolution(23)
+        assert f.resolution == 23
+        # Upsampling resamples the same trilinear field: equal up to float rounding (measured
+        # 4e-8 of the largest density for dense, 2e-7 for TensoRF), colours too.
+        scale = float(before.abs().max())
+        assert scale > 0.1
+        assert float((f.density(x) - before).abs().max()) < 1e-5 * scale
+        assert torch.allclose(f.color(x, dirs), before_rgb, atol=1e-5)
+
+
+def test_density_is_zero_outside_the_box() -> None:
+    f = _solid(DenseGridField(BOX, 8), 10.0, (0.2, 0.4, 0.6))
+    x = torch.tensor([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [0.0, 0.0, -3.0]])
+    sig = f.density(x)
+    assert sig[0] > 1 and sig[1] == 0 and sig[2] == 0
+
+
+def test_opaque_box_depth_colour_and_scaling() -> None:
+    """An opaque cube at z in [2, 4]: depth 2 (planar), colour exact; scaled by 3 about the camera: depth 6."""
+    n = 64
+    f = _solid(DenseGridField(BOX, 4), 60.0, (0.2, 0.4, 0.6))
+    dirs = _rays(n)
+    for scale in (1.0, 3.0):
+        out = render([_obj(f, 3.0 * scale, n, scale)], dirs, 64)
+        assert torch.allclose(out.acc, torch.ones(n), atol=1e-4)
+        assert torch.allclose(out.rgb, torch.tensor([0.2, 0.4, 0.6]).expand(n, 3), atol=1e-3)
+        # First sample past the front face at 2*scale; quadrature error < one interval (2/64 * scale).
+        assert torch.all((out.depth - 2.0 * scale).abs() < 2.0 / 64 * scale + 1e-4)
+
+
+def test_composite_occlusion_and_segmentation() -> None:
+    n = 32
+    near = _solid(DenseGridField(BOX, 4), 60.0, (1.0, 0.0, 0.0))
+    far = _solid(DenseGridField(BOX, 4), 60.0, (0.0, 0.0, 1.0))
+    dirs = _rays(n)
+    # Far object scaled so that it is in front: order flips with the scale.
+    for s_far, front in ((1.0, 0), (0.1, 1)):
+        out = render([_obj(near, 3.0, n), _obj(far, 10.0 * s_far, n, s_far)], dirs, 32)
+        assert torch.all(out.log_seg.argmax(1) == front)
+        assert torch.all(torch.isfinite(out.log_seg))
+        assert torch.allclose(out.log_seg.exp().sum(1), torch.ones(n), atol=1e-5)
+
+
+def test_absent_objects_and_empty_rays_are_finite() -> None:
+    n = 16
+    f = _solid(DenseGridField(BOX, 4), 60.0, (0.5, 0.5, 0.5))
+    obj = _obj(f, 3.0, n)
+    obj.present = torch.zeros(n, dtype=torch.bool)
+    miss = _obj(f, -5.0, n)  # behind the camera
+    zero = ObjectRays(f, obj.cam_to_obj, torch.ones(n, dtype=torch.bool), torch.tensor([2.5, 2.5]))  # zero-length
+    out = render([obj, miss, zero], _rays(n), 8, generator=torch.Generator().manual_seed(0), background=torch.ones(3))
+    for v in (out.rgb, out.depth, out.acc, out.log_seg):
+        assert torch.all(torch.isfinite(v))
+    assert torch.allclose(out.acc, torch.zeros(n)) and torch.allclose(out.rgb, torch.ones(n, 3))
+
+
+def test_gradients_are_finite_with_empty_rays_and_transparent_samples() -> None:
+    """Backward through RGB, depth and the segmentation cross-entropy where some rays hit
+    nothing and some samples are fully transparent (log of a zero opacity)."""
+    n = 16
+    f = DenseGridField(BOX, 4)
+    with torch.no_grad():
+        f.grid[: 32, 0] = -200.0  # softplus -> exactly transparent voxels
+        f.grid[32:, 0] = 5.0
+    hit, miss = _obj(f, 3.0, n), _obj(f, -5.0, n)
+    out = render([hit, miss], _rays(n), 8, generator=torch.Generator().manual_seed(0))
+    loss = out.rgb.sum() + out.depth.sum() + torch.nn.functional.nll_loss(out.log_seg, torch.ones(n, dtype=torch.long))
+    loss.backward()
+    assert torch.all(torch.isfinite(f.grid.grad))
+
+
+def test_skip_occluded_matches_full_render() -> None:
+    n = 32
+    near = _solid(DenseGridField(BOX, 4), 60.0, (1.0, 0.0, 0.0))
+    far = _solid(DenseGridField(BOX, 4), 60.0, (0.0, 0.0, 1.0))
+    objs = [_obj(near, 3.0, n), _obj(far, 10.0, n)]
+    full = render(objs, _rays(n), 32)
+    fast = render(objs, _rays(n), 32, skip_occluded=1e-4)
+    assert torch.allclose(full.rgb, fast.rgb, atol=1e-3) and torch.allclose(full.depth, fast.depth, atol=1e-2)
+
+
+@SETTINGS
+@given(
+    sig=st.lists(st.one_of(st.floats(0, 1e38), st.just(float("inf"))), min_size=1, max_size=40),
+    delta=st.lists(st.floats(0, 1e3), min_size=40, max_size=40),
+)
+def test_transmittance_with_huge_densities(sig: list[float], delta: list[float]) -> None:
+    s = torch.tensor(sig, dtype=torch.float32)
+    d = torch.tensor(delta[: len(sig)], dtype=torch.float32)
+    tau = s * torch.where(d > 0, d, torch.zeros_like(d))
+    tau = torch.where(d > 0, tau, torch.zeros_like(tau))  # zero-length intervals carry no opacity
+    w, log_w = transmittance_weights(tau[None])
+    assert torch.all(torch.isfinite(w)) and not torch.any(torch.isnan(log_w))
+    assert torch.all(w >= 0) and w.sum() <= 1 + 1e-5
+    first_opaque = next((i for i, t in enumerate(tau.tolist()) if t > 50), None)
+    if first_opaque is not None:
+        assert torch.all(w[0, first_opaque + 1 :] < 1e-6)
+
+
+@SETTINGS
+@given(st.data())
+def test_ray_box_is_finite_for_axis_aligned_rays(data) -> None:
+    o = torch.tensor([data.draw(st.floats(-3, 3)) for _ in range(3)])[None]
+    v = torch.tensor([data.draw(st.sampled_from([0.0, -0.0, 1.0, -1.0, 1e-20])) for _ in range(3)])[None]
+    t0, t1 = ray_box(o, v, BOX)
+    assert not torch.isnan(t0).any() and not torch.isnan(t1).any()
+
+
+def _reference_seg(depth: np.ndarray, covered: np.ndarray, sbar: np.ndarray) -> np.ndarray:
+    """Z-buffer with exact rational comparisons (independent of any float formula)."""
+    from fractions import Fraction
+
+    H, (R, K) = len(sbar), depth.shape
+    out = np.zeros((H, R), dtype=np.int64)
+    for h in range(H):
+        for r in range(R):
+            best = None
+            for k in range(K):
+                if covered[r, k]:
+                    z = Fraction(float(sbar[h, k])) * Fraction(float(depth[r, k]))
+                    if best is None or z < best[0]:
+                        best = (z, k)
+            out[h, r] = best[1] if best else 0
+    return out
+
+
+@SETTINGS
+@given(
+    K=st.integers(2, 16),
+    R=st.integers(1, 6),
+    H=st.integers(1, 4),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_softz_labels_finite_and_correct_over_wide_ranges(K: int, R: int, H: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    depth = 10.0 ** rng.uniform(-3, 4, (R, K))
+    sbar = 10.0 ** rng.uniform(-3, 3, (H, K))
+    covered = rng.random((R, K)) < 0.7
+    covered[:, 0] = True
+    z = np.log(sbar)[:, None, :] + np.log(depth)[None]
+    zs = np.sort(np.where(covered[None], z, np.inf), axis=-1)
+    if K > 1 and np.any(np.abs(zs[..., 1] - zs[..., 0]) < 1e-9):
+        return  # exact ties have no defined winner
+    dt, ct, st_ = torch.tensor(depth, dtype=torch.float32), torch.tensor(covered), torch.tensor(sbar, dtype=torch.float32)
+    ref = _reference_seg(dt.double().numpy(), covered, st_.double().numpy())
+    seg = implied_segmentation(dt, ct, st_)
+    assert np.array_equal(seg.numpy(), ref)
+    logp = soft_segmentation_log(dt, ct, st_)
+    assert torch.all(torch.isfinite(logp[ct[None].expand_as(logp)]))
+    assert torch.allclose(logp.exp().sum(-1), torch.ones(H, R, dtype=torch.float64))
+    # The soft Z-buffer's argmax equals the hard one unless exp underflows both to equal -inf.
+    assert np.array_equal(logp.argmax(-1).numpy()[logp.max(-1).values.numpy() > -700], ref[logp.max(-1).values.numpy() > -700])
+    gt = torch.tensor(ref[0])
+    labels, acc, fell_back = softz_labels(dt, ct, gt, st_)
+    assert labels[0] == 1 and acc[0] == 1 and not fell_back
+    # Every sample's accuracy is its agreement with gt on the contested rays (>= 2 objects cover).
+    contested = covered.sum(1) >= 2
+    if contested.any():
+        expected = (ref[:, contested] == ref[0][contested]).mean(axis=1)
+        assert np.allclose(acc.numpy(), expected)
+
+
+@SETTINGS
+@given(K=st.integers(2, 16), R=st.integers(1, 40), H=st.integers(1, 8), seed=st.integers(0, 2**31 - 1))
+def test_order_constraints_count_what_the_soft_z_buffer_gets_wrong(K: int, R: int, H: int, seed: int) -> None:
+    """On rays covered by exactly two objects, the closed-form violation count equals the number
+    of rays whose implied segmentation disagrees with the label; with more covering objects it
+    counts every object put in front, so it is zero exactly when the segmentation is right."""
+    rng = np.random.default_rng(seed)
+    depth = torch.tensor(10.0 ** rng.uniform(-3, 4, (R, K)))
+    sbar = torch.tensor(10.0 ** rng.uniform(-3, 3, (H, K)))
+    covered = torch.tensor(rng.random((R, K)) < 0.5)
+    gt = torch.tensor(rng.integers(-1, K, R))
+    z = np.log(sbar.numpy())[:, None, :] + np.log(depth.numpy())[None]
+    zz = np.where(covered.numpy()[None], z, np.inf)
+    with np.errstate(invalid="ignore"):  # inf - inf where both objects miss the ray
+        gaps = np.abs(zz[..., :, None] - zz[..., None, :])[..., ~np.eye(K, dtype=bool)]
+    if np.any(gaps[np.isfinite(gaps)] < 1e-9):
+        return  # near-ties: the two forms may round to different winners
+    cons = order_constraints(depth, covered, gt)
+    assert torch.all(torch.isfinite(torch.cat(cons.thresholds))) if cons.thresholds else True
+    v = cons.violations(sbar)
+    ok_gt = (gt >= 0) & covered.gather(1, gt.clamp(0)[:, None])[:, 0]
+    seg = implied_segmentation(depth, covered, sbar)
+    wrong = (seg != gt[None]) & ok_gt[None]
+    two = ok_gt & (covered.sum(1) == 2)
+    contested = ok_gt & (covered.sum(1) >= 2)
+    assert cons.rays == int(contested.sum())
+    single = order_constraints(depth[two], covered[two], gt[two])
+    assert torch.equal(single.violations(sbar), (wrong & two[None]).sum(1).double())
+    assert torch.equal(v == 0, ~(wrong & contested[None]).any(1))
+
+
+def test_trimmed_labels_allow_the_noise_floor_plus_a_share_of_each_pair() -> None:
+    # pairs of 100 and 10 rays; trim 5% allows 5 extra violations on the first, 0 on the second
+    sizes = torch.tensor([100.0, 10.0])
+    pv = torch.tensor([[2.0, 1.0], [7.0, 1.0], [8.0, 1.0], [2.0, 2.0], [0.0, 4.0]], dtype=torch.float64)
+    # best sample (fewest in all) is row 0 (3): its counts are the per-pair floor
+    assert trimmed_labels(pv, sizes, 0.05).tolist() == [1, 1, 0, 0, 0]
+    assert trimmed_labels(pv, sizes, 0.0).tolist() == [1, 0, 0, 0, 0]
+    # one pair's slack is not spent on another: row 4 has none on the large pair but 4 > 1 + 1
+    assert trimmed_labels(pv, sizes, 0.1).tolist() == [1, 1, 1, 1, 0]
+    assert trimmed_labels(pv[:, :0], sizes[:0], 0.01).tolist() == [1] * 5
+
+
+def test_validity_labels_tolerance_and_fallback() -> None:
+    acc = torch.tensor([0.5, 0.99, 0.97, 1.0], dtype=torch.float64)
+    labels, fb = validity_labels(acc, tolerance=0.0)
+    assert labels.tolist() == [0, 0, 0, 1] and not fb
+    labels, fb = validity_labels(acc, tolerance=0.02)
+    assert labels.tolist() == [0, 1, 0, 1]
+    labels, fb = validity_labels(acc[:3], tolerance=0.0, topk=2)
+    assert labels.tolist() == [0, 1, 1] and fb
+
+
+def test_scale_net_shapes_and_anchor() -> None:
+    net = ScaleNet(2, seed=0)
+    assert sum(isinstance(m, torch.nn.Linear) for m in net.mlp) == 5  # 4 hidden + output
+    ranges = torch.tensor([[0.5, 2.0], [0.1, 3.0], [1.0, 4.0]], dtype=torch.float64)
+    sb = full_sbar(torch.tensor([[0.0, 1.0]]), ranges, anchor=1)
+    assert sb.tolist() == [[0.5, 1.0, 4.0]]
+
+
+def test_fallback_sampling_never_crashes(caplog) -> None:
+    net = ScaleNet(2, seed=0)
+    with torch.no_grad():
+        net.mlp[-1].bias.fill_(-50.0)  # every candidate scores ~0
+    ranges = torch.tensor([[0.5, 2.0], [0.5, 2.0], [1.0, 4.0]], dtype=torch.float64)
+    with caplog.at_level(logging.WARNING):
+        sbar, s, p, fell_back = sample_valid(net, ranges, 0, torch.Generator().manual_seed(0), candidates=8)
+    assert fell_back and "no sampled scale vector" in caplog.text
+    assert sbar[0] == 1.0 and torch.all((sbar[1:] >= 0.5) & (sbar[1:] <= 4.0)) and math.isfinite(p)
+    with torch.no_grad():
+        net.mlp[-1].bias.fill_(50.0)
+    sbar2, _, p2, fb2 = sample_valid(net, ranges, 0, torch.Generator().manual_seed(0), candidates=8)
+    assert not fb2 and p2 > 0.95
+
+
+class _FirstCoordinateNet(torch.nn.Module):
+    """Stands in for ScaleNet in sampling: the validity score is the first free coordinate."""
+
+    num_free = 2
+
+    def prob(self, s: torch.Tensor) -> torch.Tensor:
+        return s[:, 0]
+
+
+def test_near_candidates_are_asked_only_when_every_uniform_one_misses() -> None:
+    """The uniform draw stays the rule (it covers the whole valid set); ``near`` is a second
+    chance, and when both sets miss the best candidate of either is the fallback."""
+    ranges = torch.tensor([[1.0, 1.0], [0.5, 2.0], [0.5, 2.0]], dtype=torch.float64)
+    net = _FirstCoordinateNet()
+
+    def never(_n: int) -> torch.Tensor:
+        raise AssertionError("near candidates drawn although a uniform candidate passed")
+
+    _, s, p, fb = sample_valid(net, ranges, 0, torch.Generator().manual_seed(0), threshold=0.5, near=never)
+    assert not fb and p > 0.5 and s[0] == p  # a uniform candidate, score = its first coordinate
+    # 8 uniform candidates, none above 0.999 with this seed; near candidates score 0.9995
+    near = lambda n: torch.tensor([[0.9995, 0.5]] * n, dtype=torch.float64)  # noqa: E731
+    g = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    _, s, p, fb = sample_valid(net, ranges, 0, g(), candidates=8, threshold=0.999, near=near)
+    assert not fb and s.tolist() == pytest.approx([0.9995, 0.5])  # a passing near candidate
+    _, s, p, fb = sample_valid(net, ranges, 0, g(), candidates=8, threshold=0.9999, near=near, warn=False)
+    assert fb and s.tolist() == pytest.approx([0.9995, 0.5])  # nothing passes: the best of both sets

@@ -1,0 +1,143 @@
+import numpy as np
+import pytest
+
+from scenecore import dataset as D
+from scenecore.cameras import invert_pose, pixel_rays
+from osn.preprocess import inputs as I
+from tests.synthetic import write_synthetic_dataset
+
+
+@pytest.fixture()
+def oracle(tmp_path):
+    root = tmp_path / "ds"
+    write_synthetic_dataset(root, T=4, V=2, K=3)
+    return root, D.load_scene(root), I.oracle_inputs(root, I.OracleConfig(points_per_frame=40, min_pixels=1))
+
+
+def test_oracle_poses_are_consistent_with_world_motion(oracle):
+    root, scene, inp = oracle
+    K = inp.K
+    for o in inp.objects:
+        obj = scene.objects[o.id]
+        unit = o.unit_to_world
+        # A sparse point seen in frame a, moved with the object to frame b, must land where the
+        # object-space inverse pose of frame b puts it (rigid object, shared object coordinates).
+        a, b = 0, len(o.frames) - 1
+        ta, tb = o.frames[a], o.frames[b]
+        pix, dep = o.sparse_pix[a][:5], o.sparse_depth[a][:5]
+        orig, dirs = pixel_rays(K, np.eye(4), inp.width, inp.height, pixels=pix)
+        p_cam_a = orig + dep[:, None] * dirs  # object units
+        p_obj = p_cam_a @ o.cam_to_obj[a][:3, :3].T + o.cam_to_obj[a][:3, 3]
+        b_from_obj = invert_pose(o.cam_to_obj[b])
+        p_cam_b = p_obj @ b_from_obj[:3, :3].T + b_from_obj[:3, 3]
+        # Ground truth in metres through the world.
+        c2w = {f.time_index: f.camera_to_world for f in scene.train_frames}
+        pw_a = (p_cam_a * unit) @ c2w[ta][:3, :3].T + c2w[ta][:3, 3]
+        pw_b = pw_a @ (obj.poses[tb] @ invert_pose(obj.poses[ta]))[:3, :3].T + (obj.poses[tb] @ invert_pose(obj.poses[ta]))[:3, 3]
+        w2c_b = invert_pose(c2w[tb])
+        expected = (pw_b @ w2c_b[:3, :3].T + w2c_b[:3, 3]) / unit
+        assert np.allclose(p_cam_b, expected, atol=1e-9)
+        if o.id == inp.anchor:  # the static anchor's frame is reachable from the world
+            W = inp.world_to_anchor
+            assert np.allclose(pw_a @ W[:3, :3].T + W[:3, 3], p_obj, atol=1e-9)
+        # Rigid poses, median sparse depth 1 in object units.
+        R = o.cam_to_obj[:, :3, :3]
+        assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+        assert np.median(np.concatenate(o.sparse_depth)) == pytest.approx(1.0)
+
+
+def test_scale_conversions_and_ranges(oracle):
+    root, scene, inp = oracle
+    ranges = inp.scale_ranges()
+    assert np.all(ranges[:, 0] < ranges[:, 1])
+    s = np.array([0.0, 0.5, 0.999])
+    sbar = I.denormalise_scales(np.tile(s, (3, 1)).T[:, :3], ranges)
+    assert np.allclose(I.normalise_scales(sbar, ranges), np.tile(s, (3, 1)).T)
+    actual = np.array([1.0, 0.7, 1.3])
+    assert np.allclose(inp.actual_scales(inp.true_scales(actual)), actual)
+    # Not just round trips: Eq. 1 is linear between the range ends, and sbar_k = s_k u_k / u_anchor.
+    assert np.allclose(I.denormalise_scales(np.full(3, 0.5), ranges), ranges.mean(axis=1))
+    assert np.allclose(I.denormalise_scales(np.full(3, 0.25), ranges), 0.75 * ranges[:, 0] + 0.25 * ranges[:, 1])
+    u = np.array([o.unit_to_world for o in inp.objects])
+    assert np.allclose(inp.true_scales(actual), actual * u / u[inp.anchor_pos])
+    assert inp.true_scales(np.ones(3))[inp.anchor_pos] == 1.0
+
+
+def test_anchor_is_found_by_id_not_by_position(oracle):
+    """With the anchor's object dropped from position 0 (SfM skipped an object) or listed last,
+    scales are still relative to the anchor's unit, and an unknown anchor is a clear error."""
+    import dataclasses
+
+    _, _, inp = oracle
+    units = np.array([o.unit_to_world for o in inp.objects])
+    assert len(set(units.round(9))) == 3  # distinct units, or the test could not tell positions apart
+    reordered = dataclasses.replace(inp, objects=inp.objects[::-1])
+    sbar = reordered.true_scales(np.ones(3))
+    assert reordered.anchor_pos == 2 and sbar[2] == 1.0
+    assert np.allclose(sbar, units[::-1] / units[0])
+    dropped = dataclasses.replace(inp, objects=inp.objects[1:], anchor=inp.objects[1].id)
+    assert np.allclose(dropped.true_scales(np.ones(2)), units[1:] / units[1])
+    with pytest.raises(I.InputsError, match=r"the anchor \(object 7\) is not among the objects"):
+        I.check_inputs(dataclasses.replace(inp, anchor=7), "x")
+
+
+def test_malformed_object_inputs_are_named(oracle):
+    import dataclasses
+
+    _, _, inp = oracle
+    o = inp.objects[1]
+    bad_frames = dataclasses.replace(o, frames=o.frames + 100)
+    # each axis on its own, so a check of only one of them fails
+    bad_u = dataclasses.replace(o, sparse_pix=[p + [inp.width, 0] for p in o.sparse_pix])
+    bad_v = dataclasses.replace(o, sparse_pix=[p + [0, inp.height] for p in o.sparse_pix])
+    bad_box = dataclasses.replace(o, bbox=o.bbox[::-1])
+    for obj, msg in ((bad_frames, "frames outside"), (bad_u, "sparse pixels outside"), (bad_v, "sparse pixels outside"),
+                     (bad_box, "empty or malformed box")):
+        objects = list(inp.objects)
+        objects[1] = obj
+        with pytest.raises(I.InputsError, match=f"x: object {o.id} .*{msg}"):
+            I.check_inputs(dataclasses.replace(inp, objects=objects), "x")
+
+
+def test_inverted_range_is_an_error():
+    with pytest.raises(I.InputsError, match="empty scale range"):
+        I.scale_range(1.0, 2.0, 0.5, 3.0)
+    with pytest.raises(I.InputsError, match="finite and positive"):
+        I.scale_range(0.0, 2.0, 0.5, 3.0)
+
+
+def test_save_load_round_trip(oracle, tmp_path):
+    root, scene, inp = oracle
+    I.save_inputs(tmp_path / "in", inp)
+    back = I.load_inputs(tmp_path / "in")
+    assert back.source == "oracle" and back.num_objects == inp.num_objects
+    assert np.array_equal(back.images, inp.images) and np.array_equal(back.masks, inp.masks)
+    assert np.array_equal(back.world_to_anchor, inp.world_to_anchor)
+    assert np.array_equal(back.K, inp.K) and np.array_equal(back.timestamps, inp.timestamps)
+    assert (back.width, back.height, back.anchor) == (inp.width, inp.height, inp.anchor)
+    assert (back.scene_near, back.scene_far) == (inp.scene_near, inp.scene_far)
+    for a, b in zip(back.objects, inp.objects):
+        assert (a.id, a.name, a.near, a.far, a.unit_to_world) == (b.id, b.name, b.near, b.far, b.unit_to_world)
+        assert np.array_equal(a.frames, b.frames) and np.array_equal(a.bbox, b.bbox)
+        assert np.array_equal(a.cam_to_obj, b.cam_to_obj)
+        for field in ("sparse_depth", "sparse_pix", "sparse_weight"):
+            assert all(np.array_equal(x, y) for x, y in zip(getattr(a, field), getattr(b, field)))
+
+
+def test_ignored_pixels_are_never_drawn_for_training(oracle):
+    import torch
+
+    from osn.train.loop import SceneTensors
+
+    root, scene, inp = oracle
+    inp.masks[inp.masks == 2] = I.IGNORE_ID  # as preprocessing does for a dropped object
+    st = SceneTensors(inp, torch.device("cpu"))
+    flat_masks = torch.from_numpy(inp.masks.reshape(-1))
+    assert st.usable is not None and not torch.any(flat_masks[st.usable] == I.IGNORE_ID)
+    assert len(st.usable) == int((flat_masks != I.IGNORE_ID).sum())
+    assert len(st.obj_pixels[2]) == 0  # and no object claims them
+    # Nor are they scored: training PSNR is measured on trainable pixels only.
+    from osn.train.loop import Evaluator, TrainConfig, Trainer
+
+    ev = Evaluator(Trainer(inp, TrainConfig(eval_pixels=10**6), torch.device("cpu")), None)
+    assert len(ev.flat) == len(st.usable) and not torch.any(flat_masks[ev.flat] == I.IGNORE_ID)
