@@ -41,6 +41,7 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.softz import implied_segmentation, soft_segmentation_log
 from osn.model.volume import transmittance_weights
 from tests.synthetic import write_synthetic_dataset
+from osn.evaluate.units import actual_scales, ground_truth_problem, true_scales
 
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "robustness.md"
@@ -645,11 +646,11 @@ def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(
 
     run = load_run(trained)
     original = run.inputs
-    assert original.ground_truth_problem() is None
+    assert ground_truth_problem(original) is None
     objects = list(run.inputs.objects)
     objects[1] = dataclasses.replace(objects[1], unit_to_world=None)
     run.inputs = dataclasses.replace(run.inputs, objects=objects)
-    problem = run.inputs.ground_truth_problem()
+    problem = ground_truth_problem(run.inputs)
     assert problem is not None and f"{objects[1].id} ({objects[1].name})" in problem
     samples = sample_configurations(run, 2)
     t0 = time.perf_counter()
@@ -662,7 +663,7 @@ def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(
     assert ev.region is None and "valid-set accuracy is not measured" in caplog.text
     assert "iou" not in ev() and np.isfinite(ev()["psnr"])
     no_rig = dataclasses.replace(original, world_to_anchor=None)
-    assert "test cameras cannot be placed" in no_rig.ground_truth_problem()
+    assert "test cameras cannot be placed" in ground_truth_problem(no_rig)
     # Without the anchor's test-view alignment (units intact) training still measures the valid set.
     caplog.clear()
     ev = Evaluator(Trainer(no_rig, cfg, torch.device("cpu")), tiny_dataset)
@@ -722,7 +723,7 @@ def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_d
     below = np.maximum(-s, 0).max(axis=1)
     assert out["gt_outside_scale_box"] == int(np.sum(below > 0)) and out["gt_outside_scale_box"] >= 1
     assert out["gt_outside_scale_box_max"] == pytest.approx(below.max())
-    inside = run.inputs.actual_scales(run.ranges.mean(axis=1))  # the box's centre, in dataset scales
+    inside = actual_scales(run.inputs, run.ranges.mean(axis=1))  # the box's centre, in dataset scales
     full = np.ones((1, scales.shape[1]))
     full[0, ids] = inside
     assert ground_truth_outside_box(run, full) == {"gt_outside_scale_box": 0, "gt_outside_scale_box_max": 0.0}
@@ -731,7 +732,7 @@ def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_d
     over = run.ranges.mean(axis=1)
     over[k] = run.ranges[k, 1] + 0.2 * (run.ranges[k, 1] - run.ranges[k, 0])
     above = np.ones((1, scales.shape[1]))
-    above[0, ids] = run.inputs.actual_scales(over)
+    above[0, ids] = actual_scales(run.inputs, over)
     got = ground_truth_outside_box(run, above)
     assert got["gt_outside_scale_box"] == 1 and got["gt_outside_scale_box_max"] == pytest.approx(0.2)
 
@@ -745,7 +746,7 @@ def test_validity_profile_walks_one_scale_through_its_range(trained: Path, tiny_
 
     run = load_run(trained)
     region = D.load_valid_region(tiny_dataset)
-    ref = run.inputs.true_scales(np.ones(run.inputs.num_objects))  # the authored configuration
+    ref = true_scales(run.inputs, np.ones(run.inputs.num_objects))  # the authored configuration
     k = next(i for i in range(run.inputs.num_objects) if i != run.anchor_pos)
     prof = validity_profile(run, region, ref, k, points=41)
     units = np.array([o.unit_to_world for o in run.inputs.objects])

@@ -32,6 +32,7 @@ from benchgen.score import metrics as M
 from osn.preprocess.inputs import InputsError, normalise_scales
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
+from osn.evaluate.units import actual_scales, ground_truth_problem, true_scales
 
 log = logging.getLogger(__name__)
 
@@ -354,7 +355,7 @@ def valid_set_accuracy(run: TrainedRun, region, grid: int = 64, seed: int = 0, m
     else:
         s = np.random.default_rng(seed).random((max_points, d))
     learned = run.scores(s) > VALID_THRESHOLD
-    actual = run.inputs.actual_scales(run.sbar(s))
+    actual = actual_scales(run.inputs, run.sbar(s))
     full = np.ones((len(s), region.num_objects))
     full[:, [o.id for o in run.inputs.objects]] = actual
     exact = np.asarray(region.contains(full))
@@ -375,7 +376,7 @@ def validity_profile(run: TrainedRun, region, sbar_ref: np.ndarray, k: int, poin
     line = np.repeat(sbar_ref[None], points, 0)
     line[:, k] = np.linspace(lo, hi, points)
     s_free = np.delete(normalise_scales(line, run.ranges), run.anchor_pos, axis=1)
-    actual = run.inputs.actual_scales(line)
+    actual = actual_scales(run.inputs, line)
     full = np.ones((points, region.num_objects))
     full[:, [o.id for o in run.inputs.objects]] = actual
     return {"actual_scale": actual[:, k], "score": run.scores(s_free), "exact": np.asarray(region.contains(full))}
@@ -413,7 +414,7 @@ def relative_scale_errors(actual: np.ndarray, true: np.ndarray, ids: list[int], 
 
 def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print) -> EvalResult:
     """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset."""
-    problem = run.inputs.ground_truth_problem()
+    problem = ground_truth_problem(run.inputs)
     if problem:  # checked before any rendering: every metric below needs it
         raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
     timings: dict[str, float] = {}
@@ -466,7 +467,7 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
 
     # Relative scale error of the matched samples (non-anchor objects, dataset scales); the units
     # it needs were checked above (ground_truth_problem).
-    actual = run.inputs.actual_scales(samples.sbar[match])
+    actual = actual_scales(run.inputs, samples.sbar[match])
     scale_err = relative_scale_errors(actual, gt.scales, [o.id for o in run.inputs.objects], gt.scene.anchor_id)
 
     valid = valid_set_accuracy(run, region, cfg.grid, cfg.seed)
@@ -489,7 +490,7 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
     profile = None
     if free_pos:
         k = max(free_pos, key=lambda k: np.log(run.ranges[k, 1] / run.ranges[k, 0]))
-        ref = run.inputs.true_scales(np.array([gt.scales[0, o.id] for o in run.inputs.objects]))
+        ref = true_scales(run.inputs, np.array([gt.scales[0, o.id] for o in run.inputs.objects]))
         profile = {"object": run.inputs.objects[k].name, **{a: b.tolist() for a, b in validity_profile(run, region, ref, k).items()}}
     curves = {
         "best_psnr_vs_n": {"n": Ns, "psnr": best_vs_n},
@@ -520,7 +521,7 @@ def ground_truth_outside_box(run: TrainedRun, scales: np.ndarray) -> dict[str, f
     caps best-of-N there. Reported so that cap is visible, not hidden in the averages.
     """
     ids = [o.id for o in run.inputs.objects]
-    s = normalise_scales(run.inputs.true_scales(scales[:, ids]), run.ranges)
+    s = normalise_scales(true_scales(run.inputs, scales[:, ids]), run.ranges)
     free = [k for k in range(len(ids)) if k != run.anchor_pos]
     dist = np.maximum(np.maximum(-s[:, free], s[:, free] - 1.0), 0.0).max(axis=1) if free else np.zeros(len(s))
     return {"gt_outside_scale_box": int(np.sum(dist > 0)), "gt_outside_scale_box_max": float(dist.max(initial=0.0))}

@@ -116,37 +116,6 @@ class SceneInputs:
         """``(K, 2)`` de-normalised scale range ``[sbar(0), sbar(1)]`` of every object (Eq. 1)."""
         return np.array([scale_range(self.scene_near, self.scene_far, o.near, o.far) for o in self.objects])
 
-    def true_scales(self, actual_scales: np.ndarray) -> np.ndarray:
-        """Convert actual (dataset) scales to this input's de-normalised scales ``sbar``.
-
-        ``sbar_k = s_k * unit_k / unit_anchor``; needs the oracle's ``unit_to_world``.
-        """
-        u = self._units()
-        return np.asarray(actual_scales) * u / u[self.anchor_pos]
-
-    def actual_scales(self, sbar: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`true_scales`: de-normalised scales to dataset scales."""
-        u = self._units()
-        return np.asarray(sbar) * u[self.anchor_pos] / u
-
-    def ground_truth_problem(self, test_views: bool = True) -> str | None:
-        """Why these inputs cannot be compared with ground truth (None when they can): every
-        object needs its metres per unit (scales, the valid set) and, with ``test_views``, the
-        scene its world-to-anchor similarity (to place test cameras). The oracle has both; SfM
-        has them once aligned, unless an alignment failed."""
-        missing = [f"{o.id} ({o.name})" for o in self.objects if o.unit_to_world is None]
-        if missing:
-            return f"object(s) {', '.join(missing)} have no ground-truth unit (no oracle, or their SfM alignment failed)"
-        if test_views and self.world_to_anchor is None:
-            return "no world-to-anchor alignment, so test cameras cannot be placed"
-        return None
-
-    def _units(self) -> np.ndarray:
-        u = [o.unit_to_world for o in self.objects]
-        if any(x is None for x in u):
-            raise InputsError("these inputs carry no ground-truth units (not from the oracle or aligned SfM)")
-        return np.array(u, dtype=np.float64)
-
 
 def scale_range(scene_near: float, scene_far: float, near: float, far: float) -> tuple[float, float]:
     """Eq. 1's range for one object; raises instead of ever returning an inverted range."""

@@ -54,6 +54,7 @@ from osn.model.run import CHECKPOINT_VERSION, read_checkpoint
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.softz import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import ObjectRays, render
+from osn.evaluate.units import actual_scales, ground_truth_problem
 
 log = logging.getLogger(__name__)
 
@@ -673,14 +674,14 @@ class Evaluator:
         self.region = None
         has_region = dataset_root is not None and (Path(dataset_root) / "valid_region.json").exists()
         # Scales need only the units; test cameras (world_to_anchor) are evaluation's concern.
-        problem = st.inputs.ground_truth_problem(test_views=False) if has_region else None
+        problem = ground_truth_problem(st.inputs, test_views=False) if has_region else None
         if problem:
             log.warning("valid-set accuracy is not measured during training: %s", problem)
         if trainer.net is not None and has_region and not problem:
             self.region = D.load_valid_region(dataset_root)
             self.s_mc = torch.rand(cfg.iou_samples, st.K - 1, generator=g, dtype=torch.float64)
             sbar = full_sbar(self.s_mc, st.ranges.cpu(), st.anchor).numpy()
-            self.actual_mc = st.inputs.actual_scales(sbar)
+            self.actual_mc = actual_scales(st.inputs, sbar)
             full = np.ones((len(sbar), self.region.num_objects))
             full[:, [o.id for o in st.inputs.objects]] = self.actual_mc
             self.exact = np.asarray(self.region.contains(full))

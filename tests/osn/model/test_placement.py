@@ -5,6 +5,7 @@ from scenecore.cameras import invert_pose
 from osn.preprocess import inputs as I
 from osn.model.placement import novel_to_training_camera, object_transforms
 from tests.synthetic import write_synthetic_dataset
+from osn.evaluate.units import true_scales
 
 
 def test_test_camera_points_land_in_the_right_object_coordinates(tmp_path):
@@ -18,7 +19,7 @@ def test_test_camera_points_land_in_the_right_object_coordinates(tmp_path):
     for f in scene.test_frames:
         t = f.time_index
         for actual in (np.ones(3), np.array([1.0, 0.6, 1.7])):
-            sbar = inp.true_scales(actual)
+            sbar = true_scales(inp, actual)
             M = novel_to_training_camera(inp, f.camera_to_world, t)
             T = object_transforms(inp, M, t, sbar)
             for k, obj in enumerate(scene.objects):

@@ -5,6 +5,7 @@ from scenecore import dataset as D
 from scenecore.cameras import invert_pose, pixel_rays
 from osn.preprocess import inputs as I
 from tests.synthetic import write_synthetic_dataset
+from osn.evaluate.units import actual_scales, true_scales
 
 
 @pytest.fixture()
@@ -54,13 +55,13 @@ def test_scale_conversions_and_ranges(oracle):
     sbar = I.denormalise_scales(np.tile(s, (3, 1)).T[:, :3], ranges)
     assert np.allclose(I.normalise_scales(sbar, ranges), np.tile(s, (3, 1)).T)
     actual = np.array([1.0, 0.7, 1.3])
-    assert np.allclose(inp.actual_scales(inp.true_scales(actual)), actual)
+    assert np.allclose(actual_scales(inp, true_scales(inp, actual)), actual)
     # Not just round trips: Eq. 1 is linear between the range ends, and sbar_k = s_k u_k / u_anchor.
     assert np.allclose(I.denormalise_scales(np.full(3, 0.5), ranges), ranges.mean(axis=1))
     assert np.allclose(I.denormalise_scales(np.full(3, 0.25), ranges), 0.75 * ranges[:, 0] + 0.25 * ranges[:, 1])
     u = np.array([o.unit_to_world for o in inp.objects])
-    assert np.allclose(inp.true_scales(actual), actual * u / u[inp.anchor_pos])
-    assert inp.true_scales(np.ones(3))[inp.anchor_pos] == 1.0
+    assert np.allclose(true_scales(inp, actual), actual * u / u[inp.anchor_pos])
+    assert true_scales(inp, np.ones(3))[inp.anchor_pos] == 1.0
 
 
 def test_anchor_is_found_by_id_not_by_position(oracle):
@@ -72,11 +73,11 @@ def test_anchor_is_found_by_id_not_by_position(oracle):
     units = np.array([o.unit_to_world for o in inp.objects])
     assert len(set(units.round(9))) == 3  # distinct units, or the test could not tell positions apart
     reordered = dataclasses.replace(inp, objects=inp.objects[::-1])
-    sbar = reordered.true_scales(np.ones(3))
+    sbar = true_scales(reordered, np.ones(3))
     assert reordered.anchor_pos == 2 and sbar[2] == 1.0
     assert np.allclose(sbar, units[::-1] / units[0])
     dropped = dataclasses.replace(inp, objects=inp.objects[1:], anchor=inp.objects[1].id)
-    assert np.allclose(dropped.true_scales(np.ones(2)), units[1:] / units[1])
+    assert np.allclose(true_scales(dropped, np.ones(2)), units[1:] / units[1])
     with pytest.raises(I.InputsError, match=r"the anchor \(object 7\) is not among the objects"):
         I.check_inputs(dataclasses.replace(inp, anchor=7), "x")
 

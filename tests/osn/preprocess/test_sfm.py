@@ -13,6 +13,7 @@ from benchgen.render.generate import generate
 from benchgen.scene.spec import load_preset, spec_from_dict
 from osn.preprocess import sfm as P
 from osn.preprocess.inputs import load_inputs
+from osn.evaluate.units import ground_truth_problem
 
 pytestmark = pytest.mark.slow
 
@@ -267,7 +268,7 @@ def test_alignment_fallbacks_keep_the_unit_and_say_what_failed(tiny_dataset, mon
         assert rep["alignment"].startswith("not measurable: fit_pose_similarity: camera centres give a negative scale")
     assert sfm.world_to_anchor is None
     assert report.objects[0]["test_view_alignment"].startswith("failed:")
-    assert "no world-to-anchor alignment" in sfm.ground_truth_problem()
+    assert "no world-to-anchor alignment" in ground_truth_problem(sfm)
 
 
 def test_a_frame_posed_against_its_own_matches_is_reposed_or_dropped(sfm_scene, tmp_path):
