@@ -35,7 +35,8 @@ from hypothesis import strategies as st
 from scenecore import dataset as D
 from benchgen.scene.spec import PRESET_DIR
 from scenecore.validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
-from osn.evaluate.evaluation import composite_layers, Layer, masked_mse_matrix, psnr_from_mse, sample_configurations
+from benchgen.score.metrics import psnr_from_mse
+from osn.evaluate.evaluation import composite_layers, Layer, masked_mse_matrix, sample_configurations
 from osn.preprocess.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.softz import implied_segmentation, soft_segmentation_log

@@ -76,14 +76,34 @@ def _images(pred: Array, gt: Array, mask: Array | None) -> tuple[torch.Tensor, t
 # --------------------------------------------------------------------------------------------- PSNR
 
 
-def psnr(pred: Array, gt: Array, mask: Array | None = None) -> Array | float:
-    """PSNR in dB for data range 1: ``-10 log10(MSE)``, MSE over channels and (masked) pixels.
+#: MSE floor of every PSNR: identical images score ``PSNR_MAX`` = 120 dB, not ``+inf``, so that
+#: means over views and ground truths stay finite (8-bit quantisation is far above the floor).
+MSE_FLOOR = 1e-12
+PSNR_MAX = -10.0 * math.log10(MSE_FLOOR)
 
-    Identical images give ``+inf``; an empty mask gives NaN.
+
+def psnr_from_mse(mse: Array | float) -> Array | float:
+    """PSNR in dB for data range 1 from an MSE (float, numpy array or tensor, any shape).
+
+    ``-10 log10(max(MSE, MSE_FLOOR))``: at most ``PSNR_MAX``; a NaN MSE (nothing to compare)
+    stays NaN. The one PSNR of the toolkit: training, evaluation and scoring all call it.
+    """
+    if isinstance(mse, torch.Tensor):
+        return -10.0 * torch.log10(mse.clamp_min(MSE_FLOOR))
+    if isinstance(mse, np.ndarray):
+        return -10.0 * np.log10(np.maximum(mse, MSE_FLOOR))
+    mse = float(mse)
+    return mse if math.isnan(mse) else -10.0 * math.log10(max(mse, MSE_FLOOR))
+
+
+def psnr(pred: Array, gt: Array, mask: Array | None = None) -> Array | float:
+    """PSNR in dB for data range 1 (:func:`psnr_from_mse`), MSE over channels and (masked) pixels.
+
+    Identical images give ``PSNR_MAX``; an empty mask gives NaN.
     """
     p, g, m = _images(pred, gt, mask)
     mse = _masked_mean((p - g).square().mean(-1), m)
-    return _result(-10.0 * torch.log10(mse), pred, gt, mask)
+    return _result(psnr_from_mse(mse), pred, gt, mask)
 
 
 # --------------------------------------------------------------------------------------------- SSIM

@@ -258,11 +258,6 @@ def masked_mse_matrix(images: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor
     return torch.where(m3.sum(1)[None] > 0, out, torch.full_like(out, float("nan")))
 
 
-def psnr_from_mse(mse: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return -10.0 * np.log10(np.maximum(mse, 1e-12))
-
-
 def layered_psnr(
     run: TrainedRun, samples: Samples, gt: GroundTruth, levels: int, chunk: int = 64, echo: Callable[[str], None] | None = None
 ) -> np.ndarray:
@@ -281,7 +276,7 @@ def layered_psnr(
         m = torch.from_numpy(gt.mask[:, v].reshape(G, -1))
         for i in range(0, N, chunk):
             imgs = composite_layers(layers, idx[i : i + chunk], bg)
-            out[i : i + chunk, :, v] = psnr_from_mse(masked_mse_matrix(imgs, y, m).numpy())
+            out[i : i + chunk, :, v] = M.psnr_from_mse(masked_mse_matrix(imgs, y, m).numpy())
     return out
 
 

@@ -54,6 +54,7 @@ from osn.model.run import CHECKPOINT_VERSION, read_checkpoint
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.softz import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import ObjectRays, render
+from benchgen.score.metrics import psnr_from_mse as psnr
 from osn.evaluate.units import actual_scales, ground_truth_problem
 
 log = logging.getLogger(__name__)
@@ -269,10 +270,6 @@ class SceneTensors:
             P[:, :3, :3] = P[:, :3, :3] / s  # cam_to_obj_k @ diag(1/s): scaling about the camera
             out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s))
         return out
-
-
-def psnr(mse: float) -> float:
-    return -10.0 * math.log10(max(mse, 1e-12))
 
 
 # --------------------------------------------------------------------------------------------
