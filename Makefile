@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml Makefile
 	@# TORCH_SPEC first, so pip never resolves torch itself (that would pull CUDA packages).
 	@$(PY) -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '$(TORCH_VERSION)')" >/dev/null 2>&1 \
 		|| $(PY) -m pip install --quiet $(TORCH_SPEC)
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e ".[render,test]"
 	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared
 	@# torchvision would pull a CUDA torch; nothing imports it outside tests.
 	$(PY) -m pip install --quiet --no-deps lpips==0.1.4

@@ -7,6 +7,7 @@ import sys
 from typing import Sequence
 
 from scenecore.cli import UserError, run_cli, subcommand
+from benchgen.score.command import add_score_command
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -103,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", help="dataset directory written by 'benchgen generate'")
     _add_run_options(p)
     subcommand(sub, "presets", _cmd_presets, "list the built-in scene specs")
+    add_score_command(sub)
     return parser
 
 

@@ -32,7 +32,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     print_command()
 
-    from osn.evaluate.evaluation import exact_psnr, layered_psnr, load_ground_truth, render_sample, sample_configurations
+    from osn.evaluate.exact import exact_psnr, render_sample
+    from osn.evaluate.ground_truth import load_ground_truth
+    from osn.evaluate.layered import layered_psnr
+    from osn.sample.configurations import sample_configurations
     from osn.model.run import load_run
 
     run = load_run(args.run)

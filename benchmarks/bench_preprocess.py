@@ -12,7 +12,7 @@ frames with rotation error <= 1 degree.
 Variants: ``default`` (PreprocessConfig()), ``previous`` (the defaults before 2026-11-22:
 luminance, no guided matching, one mapper run, COLMAP's 4 px at 2x upsampling), and the
 single-change variants ``no-guided``, ``luminance``, ``one-run``, ``loose-epipolar``,
-``no-check`` (no registration check, osn.sfm_repair) and ``no-robust-ba`` (no final Cauchy BA).
+``no-check`` (no registration check, osn.preprocess.repair) and ``no-robust-ba`` (no final Cauchy BA).
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ import json
 import sys
 import time
 
-from osn.preprocess.sfm import PreprocessConfig, preprocess_dataset
+from osn.preprocess.sfm import PreprocessConfig
+from osn.preprocess.video import preprocess_dataset
 
 from benchutil import print_command
 

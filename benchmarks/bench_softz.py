@@ -28,7 +28,7 @@ import torch
 from osn.preprocess.inputs import load_inputs
 from osn.model.scale_net import full_sbar
 from osn.model.softz import implied_segmentation, sample_accuracy, validity_labels
-from osn.train.loop import TrainConfig, Trainer, pick_device
+from osn.train import TrainConfig, Trainer, pick_device
 from osn.model.volume import render
 
 from benchutil import print_command

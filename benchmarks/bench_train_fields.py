@@ -19,8 +19,8 @@ import time
 import torch
 import torch.nn.functional as F
 
-from osn.preprocess.inputs import oracle_inputs
-from osn.train.loop import TrainConfig, Trainer, pick_device
+from osn.preprocess.oracle import oracle_inputs
+from osn.train import TrainConfig, Trainer, pick_device
 from osn.model.volume import render
 
 from benchutil import print_command

@@ -28,7 +28,8 @@ import yaml
 from osn.preprocess.inputs import load_inputs
 from osn.model.scale_net import full_sbar
 from osn.model.softz import trimmed_labels
-from osn.train.loop import Evaluator, Phase, TrainConfig, Trainer
+from osn.cli.train import dataset_region
+from osn.train import Phase, TrainConfig, Trainer, TrainingMonitor
 
 from benchutil import print_command
 
@@ -53,7 +54,7 @@ def main() -> None:
     tr.load_state_dict(torch.load(a.checkpoint, weights_only=False))
     tr.net.load_state_dict(fresh)  # the fields are the checkpoint's, the network starts untrained
     tr.net_opt = torch.optim.Adam(tr.net.parameters(), lr=cfg.scale_lr)
-    ev = Evaluator(tr, json.loads((run / "run.json").read_text())["dataset"])
+    ev = TrainingMonitor(tr, dataset_region(json.loads((run / "run.json").read_text())["dataset"]))
     if ev.region is None:
         raise SystemExit(f"{run}: the dataset has no valid_region.json")
     phase = Phase("scale", 10**9, 10**9 + a.steps, 1)

@@ -1,8 +1,9 @@
-"""The OSN export format, read side, and the scale network: numpy only.
+"""The OSN export format, read side: numpy only.
 
 This module is shared by the Blender add-on (which may use nothing but Blender's bundled numpy)
 and by ``osn`` (``osn.export`` writes the format and reuses the evaluator and sampler from here),
-so the format version, the network evaluation and the configuration maths have one owner.
+so the format version, the network evaluation and the configuration maths have one owner. The
+network and configuration maths are in :mod:`scenecore.scale_space`, re-exported here.
 
 Export directory (format ``osn-export`` version 1, see docs/export-and-addon.md)::
 
@@ -29,165 +30,40 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
 from .cameras import opengl_from_opencv, scale_about
+from .errors import ExportFormatError
+# The scale network and configuration maths live in scale_space; callers (the add-on, osn.export)
+# reach them through this module, the one entry point of the export format.
+from .scale_space import (
+    ACTIVATIONS,
+    configured_poses,
+    denormalise,
+    learned_intervals,
+    normalise,
+    sample_valid_configurations,
+    scale_net_numpy,
+    scale_scores,
+)
 
 EXPORT_FORMAT = "osn-export"
 EXPORT_VERSION = 1
 MANIFEST_NAME = "osn_export.json"
-ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
 
 __all__ = [
     "EXPORT_FORMAT", "EXPORT_VERSION", "MANIFEST_NAME", "ExportFormatError", "ExportObjectData", "ExportData",
     "scale_net_numpy", "denormalise", "normalise", "configured_poses", "blender_camera_matrices",
     "learned_intervals", "scale_scores", "sample_valid_configurations", "read_export", "read_ply", "sha256_file",
-    "opengl_from_opencv", "scale_about",
+    "opengl_from_opencv", "scale_about", "ACTIVATIONS", "names_manifest",
 ]
-
-
-class ExportFormatError(ValueError):
-    """An export directory is malformed, incomplete or of another version (message says which file)."""
-
-
-# --------------------------------------------------------------------------------------------
-# Scale network and configurations
-# --------------------------------------------------------------------------------------------
-
-
-def _activate(x: np.ndarray, name: str) -> np.ndarray:
-    if name == "relu":
-        return np.maximum(x, 0.0)
-    if name == "sigmoid":
-        # Split by sign so large |x| never overflows exp.
-        e = np.exp(-np.abs(x))
-        return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
-    if name == "softplus":
-        return np.logaddexp(0.0, x)
-    if name == "tanh":
-        return np.tanh(x)
-    if name == "identity":
-        return x
-    raise ExportFormatError(f"unknown activation {name!r} (expected one of {ACTIVATIONS})")
-
-
-def scale_net_numpy(
-    layers: Sequence[tuple[np.ndarray, np.ndarray]],
-    s_norm: np.ndarray,
-    hidden: str = "relu",
-    output: str = "sigmoid",
-) -> np.ndarray:
-    """Evaluate the object scale network on normalised scales.
-
-    Args:
-        layers: ``[(W, b), ...]`` with ``W (out, in)`` and ``b (out,)`` (torch ``nn.Linear`` layout).
-        s_norm: ``(N, K-1)`` or ``(K-1,)`` normalised scales of the non-anchor objects.
-        hidden, output: activation after every hidden layer and after the last one.
-
-    Returns:
-        ``(N,)`` validity scores (a scalar array for 1-D input), computed in float64.
-    """
-    x = np.atleast_2d(np.asarray(s_norm, dtype=np.float64))
-    for i, (W, b) in enumerate(layers):
-        x = x @ np.asarray(W, dtype=np.float64).T + np.asarray(b, dtype=np.float64)
-        x = _activate(x, output if i == len(layers) - 1 else hidden)
-    out = x[:, 0]
-    return out if np.ndim(s_norm) > 1 else out[0]
-
-
-def denormalise(s_norm: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-    """Eq. 1 on ``(..., K)`` normalised scales with per-object ``ranges (K, 2)``."""
-    return ranges[:, 0] * (1.0 - s_norm) + ranges[:, 1] * s_norm
-
-
-def normalise(sbar: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`denormalise`."""
-    return (sbar - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
-
-
-def configured_poses(object_to_scene: np.ndarray, camera_centres: np.ndarray, sbar: float) -> np.ndarray:
-    """``(F, 4, 4)`` poses of one object scaled by ``sbar`` about each frame's training camera centre."""
-    return np.stack([scale_about(c, float(sbar)) @ P for P, c in zip(object_to_scene, camera_centres)])
 
 
 def blender_camera_matrices(camera_to_scene: np.ndarray) -> np.ndarray:
     """OpenCV camera-to-scene poses ``(..., 4, 4)`` as Blender camera ``matrix_world``."""
     return opengl_from_opencv(camera_to_scene)
-
-
-def scale_scores(
-    layers: Sequence[tuple[np.ndarray, np.ndarray]] | None,
-    sbar: np.ndarray,
-    ranges: np.ndarray,
-    anchor_index: int,
-    hidden: str = "relu",
-    output: str = "sigmoid",
-) -> np.ndarray:
-    """Validity scores ``(N,)`` of actual scales ``sbar (N, K)``: Eq. 1 inverted, anchor dropped,
-    then the network (all ones without a network: a single object is always valid)."""
-    sbar = np.atleast_2d(sbar)
-    if layers is None:
-        return np.ones(len(sbar))
-    free = [k for k in range(sbar.shape[1]) if k != anchor_index]
-    return scale_net_numpy(layers, normalise(sbar[:, free], ranges[free]), hidden, output)
-
-
-def learned_intervals(
-    layers: Sequence[tuple[np.ndarray, np.ndarray]] | None,
-    ranges: np.ndarray,
-    anchor_index: int,
-    threshold: float = 0.5,
-    hidden: str = "relu",
-    output: str = "sigmoid",
-    draws: int = 200_000,
-    seed: int = 0,
-) -> np.ndarray:
-    """``(K, 2)`` per-object actual-scale interval of the learned valid set (its bounding box).
-
-    Monte-Carlo over the whole normalised domain [0, 1)^(K-1); the anchor's interval is [1, 1].
-    Raises ``ExportFormatError`` when no draw is valid (the network accepts nothing), instead of
-    returning an empty or inverted interval.
-    """
-    K = len(ranges)
-    out = np.ones((K, 2))
-    free = [k for k in range(K) if k != anchor_index]
-    if not free:
-        return out
-    if layers is None:
-        out[free] = ranges[free]
-        return out
-    s = np.random.default_rng(seed).random((draws, len(free)))
-    ok = scale_net_numpy(layers, s, hidden, output) >= threshold
-    if not ok.any():
-        raise ExportFormatError(f"the scale network accepts none of {draws} uniform draws: no valid configuration")
-    sbar = denormalise(s[ok], ranges[free])
-    out[free, 0], out[free, 1] = sbar.min(0), sbar.max(0)
-    return out
-
-
-def sample_valid_configurations(
-    score: Callable[[np.ndarray], np.ndarray], intervals: np.ndarray, threshold: float, count: int, seed: int,
-    max_draws: int = 1_000_000,
-) -> np.ndarray:
-    """``(count, K)`` actual scales drawn uniformly inside ``intervals (K, 2)`` and kept when valid.
-
-    Seeded rejection sampling through ``score`` (actual scales ``(N, K)`` -> ``(N,)``, e.g.
-    :meth:`ExportData.validity`), batch by batch, so the result depends only on ``seed``.
-    Raises ``ExportFormatError`` if ``max_draws`` draws give too few.
-    """
-    rng = np.random.default_rng(seed)
-    lo, hi = intervals[:, 0], intervals[:, 1]
-    kept: list[np.ndarray] = []
-    drawn = 0
-    while sum(len(k) for k in kept) < count:
-        if drawn >= max_draws:
-            raise ExportFormatError(f"only {sum(len(k) for k in kept)} of {count} valid configurations in {max_draws} draws")
-        batch = lo + (hi - lo) * rng.random((4096, len(lo)))
-        drawn += len(batch)
-        kept.append(batch[score(batch) >= threshold])
-    return np.concatenate(kept)[:count]
 
 
 # --------------------------------------------------------------------------------------------
@@ -453,7 +329,8 @@ def read_export(path: str, load_meshes: bool = True) -> ExportData:
         raise ExportFormatError(f"{mpath}: malformed export ({type(e).__name__}: {' '.join(str(e).split())})") from None
 
 
-def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) -> ExportData:
+def _check_listed_files(root: str, mpath: str, m: dict[str, Any]) -> set[str]:
+    """The manifest's ``files``: each inside the export, present, of the recorded size and sha256."""
     listed: set[str] = set()
     for j, entry in enumerate(_list(_get(m, "files", mpath), mpath, "'files'")):
         what = f"files[{j}]"
@@ -469,12 +346,105 @@ def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) 
         if os.path.getsize(p) != size or sha256_file(p) != digest:
             raise ExportFormatError(f"{p}: corrupt file (size or sha256 differs from the manifest)")
         listed.add(rel)
+    return listed
+
+
+def _file_namer(root: str, mpath: str, listed: set[str]) -> Callable[[Any, str], str]:
+    """``named(rel, what)``: the path of a file the manifest refers to, which must be among ``listed``."""
 
     def named(rel: Any, what: str) -> str:
         if not isinstance(rel, str) or rel not in listed:
             raise ExportFormatError(f"{mpath}: {what} {_show(rel)} is not among the manifest's files")
         return os.path.join(root, rel)
 
+    return named
+
+
+def _read_object(
+    o: Any, i: int, mpath: str, arrays: dict[str, np.ndarray], T: int, named: Callable[[Any, str], str],
+    used_ids: set[int],
+) -> ExportObjectData:
+    """Manifest entry ``i`` of ``objects`` with its arrays (mesh not loaded); its id not in ``used_ids``."""
+    where = f"{mpath}: object {i}"
+    _dict(o, mpath, f"object {i}")
+    oid = _int(_get(o, "id", where), where, "id", minimum=0)
+    if oid in used_ids:
+        raise ExportFormatError(f"{where}: id {oid} is used by another object")
+    frames = np.asarray(arrays.get(f"obj{oid}_frames", np.zeros(0, np.int64)))
+    if frames.dtype.kind not in "iu" or frames.ndim != 1 or not len(frames) or frames.min() < 0 or frames.max() >= T:
+        raise ExportFormatError(f"{where}: frames must be a non-empty integer subset of 0..{T - 1}")
+    frames = frames.astype(np.int64)
+    lo, hi = _numbers(_get(o, "scale_range", where), where, "scale_range", (2,))
+    vlo, vhi = _numbers(_get(o, "valid_interval", where), where, "valid_interval", (2,))
+    if not (0 < lo < hi and 0 < vlo <= vhi):
+        raise ExportFormatError(f"{where}: scale_range [{lo}, {hi}] or valid_interval [{vlo}, {vhi}] is empty or inverted")
+    grid_shape = _list(_get(o, "grid_shape", where), where, "grid_shape")
+    if len(grid_shape) != 3:
+        raise ExportFormatError(f"{where}: grid_shape must be 3 integers [D, H, W], got {_show(grid_shape)}")
+    mesh_rel = o.get("mesh")
+    is_anchor = _get(o, "is_anchor", where)
+    if not isinstance(is_anchor, bool):
+        raise ExportFormatError(f"{where}: is_anchor must be true or false, got {_show(is_anchor)}")
+    return ExportObjectData(
+        id=oid,
+        name=_str(_get(o, "name", where), where, "name"),
+        is_anchor=is_anchor,
+        bbox=_numbers(_get(o, "bbox", where), where, "bbox", (2, 3)),
+        grid_shape=tuple(_int(n, where, "grid_shape", minimum=1) for n in grid_shape),  # type: ignore[arg-type]
+        scale_range=(float(lo), float(hi)),
+        valid_interval=(float(vlo), float(vhi)),
+        frames=frames,
+        object_to_scene=_array(arrays, f"obj{oid}_object_to_scene", (len(frames), 4, 4), where),
+        volume_path=named(_get(o, "volume", where), "volume"),
+        mesh_path=named(mesh_rel, "mesh") if mesh_rel is not None else None,
+    )
+
+
+def _read_objects(
+    m: dict[str, Any], mpath: str, arrays: dict[str, np.ndarray], T: int, named: Callable[[Any, str], str], load_meshes: bool
+) -> tuple[list[ExportObjectData], int]:
+    """Every object (ids unique, meshes loaded if asked) and the index of the one anchor."""
+    objects: list[ExportObjectData] = []
+    for i, o in enumerate(_list(_get(m, "objects", mpath), mpath, "'objects'")):
+        obj = _read_object(o, i, mpath, arrays, T, named, {prev.id for prev in objects})
+        if load_meshes and obj.mesh_path:
+            obj.mesh = read_ply(obj.mesh_path)
+        objects.append(obj)
+    anchors = [i for i, o in enumerate(objects) if o.is_anchor]
+    if len(anchors) != 1:
+        raise ExportFormatError(f"{mpath}: expected exactly one anchor object, found {len(anchors)}")
+    return objects, anchors[0]
+
+
+def _read_scale_network(
+    net: Any, mpath: str, named: Callable[[Any, str], str], num_objects: int
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
+    """The network's layers ``[(W (out, in), b (out,)), ...]`` (input width ``num_objects - 1``,
+    output width 1) and its ``ExportData`` fields (activations, threshold)."""
+    where = f"{mpath}: scale_network"
+    _dict(net, mpath, "'scale_network'")
+    z = _load_npz(named(_get(net, "file", where), "scale network file"))
+    n = _int(_get(net, "layers", where), where, "layers", minimum=1)
+    width_in, layers = num_objects - 1, []
+    for i in range(n):  # each layer's input width is the previous layer's output width
+        W = _array(z, f"W{i}", (None, width_in), where)
+        layers.append((W, _array(z, f"b{i}", (W.shape[0],), where)))
+        width_in = W.shape[0]
+    if width_in != 1:
+        raise ExportFormatError(f"{mpath}: scale network output width {width_in}, expected 1")
+    net_kw = {
+        "net_hidden": _str(_get(net, "hidden_activation", where), where, "hidden_activation"),
+        "net_output": _str(_get(net, "output_activation", where), where, "output_activation"),
+        "net_threshold": float(_numbers(_get(net, "threshold", where), where, "threshold", ())),
+    }
+    for key in ("net_hidden", "net_output"):
+        if net_kw[key] not in ACTIVATIONS:
+            raise ExportFormatError(f"{where}: unknown activation {net_kw[key]!r} (expected one of {ACTIVATIONS})")
+    return layers, net_kw
+
+
+def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) -> ExportData:
+    named = _file_namer(root, mpath, _check_listed_files(root, mpath, m))
     arrays = _load_npz(named(_get(m, "arrays", mpath), "arrays file"))
     timestamps = _numbers(_get(m, "timestamps", mpath), mpath, "'timestamps'", (None,))
     T = len(timestamps)
@@ -486,70 +456,9 @@ def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) 
     K = _numbers(_get(cam, "K", f"{mpath}: camera"), mpath, "camera.K", (3, 3))
     c2s = _array(arrays, "camera_to_scene", (T, 4, 4), mpath)
     test = _array(arrays, "test_cameras", (None, T, 4, 4), mpath) if "test_cameras" in arrays else None
-    objects: list[ExportObjectData] = []
-    for i, o in enumerate(_list(_get(m, "objects", mpath), mpath, "'objects'")):
-        where = f"{mpath}: object {i}"
-        _dict(o, mpath, f"object {i}")
-        oid = _int(_get(o, "id", where), where, "id", minimum=0)
-        if any(prev.id == oid for prev in objects):
-            raise ExportFormatError(f"{where}: id {oid} is used by another object")
-        frames = np.asarray(arrays.get(f"obj{oid}_frames", np.zeros(0, np.int64)))
-        if frames.dtype.kind not in "iu" or frames.ndim != 1 or not len(frames) or frames.min() < 0 or frames.max() >= T:
-            raise ExportFormatError(f"{where}: frames must be a non-empty integer subset of 0..{T - 1}")
-        frames = frames.astype(np.int64)
-        lo, hi = _numbers(_get(o, "scale_range", where), where, "scale_range", (2,))
-        vlo, vhi = _numbers(_get(o, "valid_interval", where), where, "valid_interval", (2,))
-        if not (0 < lo < hi and 0 < vlo <= vhi):
-            raise ExportFormatError(f"{where}: scale_range [{lo}, {hi}] or valid_interval [{vlo}, {vhi}] is empty or inverted")
-        grid_shape = _list(_get(o, "grid_shape", where), where, "grid_shape")
-        if len(grid_shape) != 3:
-            raise ExportFormatError(f"{where}: grid_shape must be 3 integers [D, H, W], got {_show(grid_shape)}")
-        mesh_rel = o.get("mesh")
-        is_anchor = _get(o, "is_anchor", where)
-        if not isinstance(is_anchor, bool):
-            raise ExportFormatError(f"{where}: is_anchor must be true or false, got {_show(is_anchor)}")
-        obj = ExportObjectData(
-            id=oid,
-            name=_str(_get(o, "name", where), where, "name"),
-            is_anchor=is_anchor,
-            bbox=_numbers(_get(o, "bbox", where), where, "bbox", (2, 3)),
-            grid_shape=tuple(_int(n, where, "grid_shape", minimum=1) for n in grid_shape),  # type: ignore[arg-type]
-            scale_range=(float(lo), float(hi)),
-            valid_interval=(float(vlo), float(vhi)),
-            frames=frames,
-            object_to_scene=_array(arrays, f"obj{oid}_object_to_scene", (len(frames), 4, 4), where),
-            volume_path=named(_get(o, "volume", where), "volume"),
-            mesh_path=named(mesh_rel, "mesh") if mesh_rel is not None else None,
-        )
-        if load_meshes and obj.mesh_path:
-            obj.mesh = read_ply(obj.mesh_path)
-        objects.append(obj)
-    anchors = [i for i, o in enumerate(objects) if o.is_anchor]
-    if len(anchors) != 1:
-        raise ExportFormatError(f"{mpath}: expected exactly one anchor object, found {len(anchors)}")
+    objects, anchor = _read_objects(m, mpath, arrays, T, named, load_meshes)
     net = m.get("scale_network")
-    layers = None
-    net_kw: dict[str, Any] = {}
-    if net is not None:
-        where = f"{mpath}: scale_network"
-        _dict(net, mpath, "'scale_network'")
-        z = _load_npz(named(_get(net, "file", where), "scale network file"))
-        n = _int(_get(net, "layers", where), where, "layers", minimum=1)
-        width_in, layers = len(objects) - 1, []
-        for i in range(n):  # each layer's input width is the previous layer's output width
-            W = _array(z, f"W{i}", (None, width_in), where)
-            layers.append((W, _array(z, f"b{i}", (W.shape[0],), where)))
-            width_in = W.shape[0]
-        if width_in != 1:
-            raise ExportFormatError(f"{mpath}: scale network output width {width_in}, expected 1")
-        net_kw = {
-            "net_hidden": _str(_get(net, "hidden_activation", where), where, "hidden_activation"),
-            "net_output": _str(_get(net, "output_activation", where), where, "output_activation"),
-            "net_threshold": float(_numbers(_get(net, "threshold", where), where, "threshold", ())),
-        }
-        for key in ("net_hidden", "net_output"):
-            if net_kw[key] not in ACTIVATIONS:
-                raise ExportFormatError(f"{where}: unknown activation {net_kw[key]!r} (expected one of {ACTIVATIONS})")
+    layers, net_kw = _read_scale_network(net, mpath, named, len(objects)) if net is not None else (None, {})
     samples = _array(arrays, "samples_sbar", (None, len(objects)), mpath) if "samples_sbar" in arrays else None
     return ExportData(
         root=root,
@@ -561,7 +470,7 @@ def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) 
         camera_to_scene=c2s,
         test_cameras=test,
         objects=objects,
-        anchor_index=anchors[0],
+        anchor_index=anchor,
         net_layers=layers,
         samples=samples,
         **net_kw,

@@ -36,8 +36,9 @@ from scenecore import dataset as D
 from benchgen.scene.spec import PRESET_DIR
 from scenecore.validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
 from benchgen.score.metrics import psnr_from_mse
-from osn.evaluate.evaluation import composite_layers, Layer, masked_mse_matrix, sample_configurations
+from osn.evaluate.layered import composite_layers, Layer, masked_mse_matrix
 from osn.preprocess.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
+from osn.sample.configurations import sample_configurations
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.softz import implied_segmentation, soft_segmentation_log
 from osn.model.volume import transmittance_weights
@@ -641,9 +642,10 @@ def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(
     with a message naming the object, instead of failing after all the work."""
     import dataclasses
 
-    from osn.evaluate.evaluation import EvalConfig, evaluate
+    from osn.evaluate.bestofn import EvalConfig, evaluate
     from osn.model.run import load_run
-    from osn.train.loop import Evaluator, TrainConfig, Trainer
+    from osn.cli.train import dataset_region
+    from osn.train import TrainConfig, Trainer, TrainingMonitor
 
     run = load_run(trained)
     original = run.inputs
@@ -660,14 +662,14 @@ def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(
     assert time.perf_counter() - t0 < 1.0
     cfg = TrainConfig.from_yaml(trained / "config.yaml")
     with caplog.at_level(logging.WARNING):
-        ev = Evaluator(Trainer(run.inputs, cfg, torch.device("cpu")), tiny_dataset)
+        ev = TrainingMonitor(Trainer(run.inputs, cfg, torch.device("cpu")), dataset_region(tiny_dataset))
     assert ev.region is None and "valid-set accuracy is not measured" in caplog.text
     assert "iou" not in ev() and np.isfinite(ev()["psnr"])
     no_rig = dataclasses.replace(original, world_to_anchor=None)
     assert "test cameras cannot be placed" in ground_truth_problem(no_rig)
     # Without the anchor's test-view alignment (units intact) training still measures the valid set.
     caplog.clear()
-    ev = Evaluator(Trainer(no_rig, cfg, torch.device("cpu")), tiny_dataset)
+    ev = TrainingMonitor(Trainer(no_rig, cfg, torch.device("cpu")), dataset_region(tiny_dataset))
     assert ev.region is not None and "not measured" not in caplog.text and "iou" in ev()
 
 
@@ -711,7 +713,7 @@ def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_d
     """Eq. 1's box does not know the benchmark's scale range: the tiny preset's configurations 1
     and 2 put the ball 0.9% of its range below the box. Evaluation counts them (they can only be
     approached from the edge) instead of letting that cap hide in the averages."""
-    from osn.evaluate.evaluation import ground_truth_outside_box
+    from osn.evaluate.valid_set import ground_truth_outside_box
     from osn.model.run import load_run
 
     run = load_run(trained)
@@ -742,7 +744,7 @@ def test_validity_profile_walks_one_scale_through_its_range(trained: Path, tiny_
     """The report's validity profile: object k's scale runs over its whole Eq. 1 range (in
     dataset scales), the others stay at the reference; scores are the network's at exactly
     those vectors, and the exact flags are the region's own verdicts there."""
-    from osn.evaluate.evaluation import validity_profile
+    from osn.evaluate.valid_set import validity_profile
     from osn.model.run import load_run
 
     run = load_run(trained)

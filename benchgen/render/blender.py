@@ -31,6 +31,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -172,74 +173,35 @@ class Renderer:
             mat.use_nodes = True
             nt = mat.node_tree
         nt.nodes.clear()
-        N, L = nt.nodes.new, nt.links.new
+        g = _Nodes(nt)
         rng = np.random.default_rng(seed if tex.seed is None else tex.seed)
-        coord = N("ShaderNodeTexCoord")
-        mapping = N("ShaderNodeMapping")
+        coord = g.new("ShaderNodeTexCoord")
+        mapping = g.new("ShaderNodeMapping")
         mapping.inputs["Location"].default_value = rng.uniform(-50, 50, 3).tolist()
         mapping.inputs["Scale"].default_value = [tex.scale] * 3
-        L(coord.outputs["Object"], mapping.inputs["Vector"])
+        g.link(coord.outputs["Object"], mapping.inputs["Vector"])
         vec = mapping.outputs["Vector"]
-
-        def ramp(fac):
-            r = N("ShaderNodeValToRGB")
-            r.color_ramp.elements[0].position, r.color_ramp.elements[1].position = 0.3, 0.7
-            r.color_ramp.elements[0].color = [*tex.colors[0], 1.0]
-            r.color_ramp.elements[1].color = [*tex.colors[1], 1.0]
-            L(fac, r.inputs["Fac"])
-            return r.outputs["Color"]
-
-        def op(name, a, b):
-            m = N("ShaderNodeMath")
-            m.operation = name
-            for sock, v in zip(m.inputs, (a, b)):
-                if isinstance(v, (int, float)):
-                    sock.default_value = v
-                else:
-                    L(v, sock)
-            return m.outputs[0]
-
-        noise = N("ShaderNodeTexNoise")
+        noise = g.new("ShaderNodeTexNoise")
         # Node scale 1: the spec's `scale` (the mapping) is the frequency in cycles per metre.
         noise.inputs["Scale"].default_value = 1.0
         noise.inputs["Detail"].default_value = TEXTURE_OCTAVES
         noise.inputs["Roughness"].default_value = 0.65
-        L(vec, noise.inputs["Vector"])
-        if tex.kind == "noise":
-            base = ramp(noise.outputs["Fac"])
-        elif tex.kind == "checker":
-            pat = N("ShaderNodeTexChecker")
-            pat.inputs["Color1"].default_value = [*tex.colors[0], 1.0]
-            pat.inputs["Color2"].default_value = [*tex.colors[1], 1.0]
-            pat.inputs["Scale"].default_value = 1.0
-            L(vec, pat.inputs["Vector"])
-            base = pat.outputs["Color"]
-        else:  # voronoi
-            pat = N("ShaderNodeTexVoronoi")
-            pat.inputs["Scale"].default_value = 1.0
-            L(vec, pat.inputs["Vector"])
-            base = ramp(pat.outputs["Distance"])
+        g.link(vec, noise.inputs["Vector"])
+        base = _pattern_colour(g, tex, vec, noise.outputs["Fac"])
         # Fine noise detail on every kind, so that feature detectors find corners everywhere.
-        detail = op("MULTIPLY_ADD", noise.outputs["Fac"], 0.6)
+        detail = g.math("MULTIPLY_ADD", noise.outputs["Fac"], 0.6)
         detail.node.inputs[2].default_value = 0.7
-        geo = N("ShaderNodeNewGeometry")
-        dot = N("ShaderNodeVectorMath")
-        dot.operation = "DOT_PRODUCT"
-        L(geo.outputs["Normal"], dot.inputs[0])
-        dot.inputs[1].default_value = (SHADE_DIRECTION / np.linalg.norm(SHADE_DIRECTION)).tolist()
-        shade = op("MULTIPLY_ADD", op("ABSOLUTE", dot.outputs["Value"], 0.0), 0.45)
-        shade.node.inputs[2].default_value = 0.55
-        factor = op("MULTIPLY", detail, shade)
-        mix = N("ShaderNodeMix")
+        factor = g.math("MULTIPLY", detail, _normal_shading(g))
+        mix = g.new("ShaderNodeMix")
         mix.data_type = "RGBA"
         mix.blend_type = "MULTIPLY"
         mix.inputs["Factor"].default_value = 1.0
-        L(base, mix.inputs[6])
-        L(factor, mix.inputs[7])
-        emission = N("ShaderNodeEmission")
-        L(mix.outputs[2], emission.inputs["Color"])
-        out = N("ShaderNodeOutputMaterial")
-        L(emission.outputs["Emission"], out.inputs["Surface"])
+        g.link(base, mix.inputs[6])
+        g.link(factor, mix.inputs[7])
+        emission = g.new("ShaderNodeEmission")
+        g.link(mix.outputs[2], emission.inputs["Color"])
+        out = g.new("ShaderNodeOutputMaterial")
+        g.link(emission.outputs["Emission"], out.inputs["Surface"])
         return mat
 
     def render(self, camera_to_world: np.ndarray, poses: np.ndarray, samples: int | None = None, only: int | None = None) -> RenderOutput:
@@ -292,3 +254,59 @@ def read_multilayer_exr(path: str) -> tuple[RenderOutput, np.ndarray]:
     ids = np.where(index > 0, index - 1, NO_OBJECT).astype(np.uint8)
     normal = np.stack([ch["Normal.X"], ch["Normal.Y"], ch["Normal.Z"]], axis=-1).astype(np.float64)
     return RenderOutput(rgb, depth, ids), normal
+
+
+class _Nodes:
+    """Adds and links the nodes of one material's node tree (``new``, ``link`` and two shorthands)."""
+
+    def __init__(self, node_tree: Any):
+        self.new, self.link = node_tree.nodes.new, node_tree.links.new
+
+    def ramp(self, fac: Any, colors: list[list[float]]) -> Any:
+        """A two-colour ramp (stops at 0.3 and 0.7) of the scalar socket ``fac``; returns its colour socket."""
+        r = self.new("ShaderNodeValToRGB")
+        r.color_ramp.elements[0].position, r.color_ramp.elements[1].position = 0.3, 0.7
+        r.color_ramp.elements[0].color = [*colors[0], 1.0]
+        r.color_ramp.elements[1].color = [*colors[1], 1.0]
+        self.link(fac, r.inputs["Fac"])
+        return r.outputs["Color"]
+
+    def math(self, operation: str, a: Any, b: Any) -> Any:
+        """A Math node of sockets or constants ``a``, ``b``; returns its output socket."""
+        m = self.new("ShaderNodeMath")
+        m.operation = operation
+        for sock, v in zip(m.inputs, (a, b)):
+            if isinstance(v, (int, float)):
+                sock.default_value = v
+            else:
+                self.link(v, sock)
+        return m.outputs[0]
+
+
+def _pattern_colour(g: _Nodes, tex: Texture, vec: Any, noise_fac: Any) -> Any:
+    """The texture's base colour socket at object coordinates ``vec`` (noise, checker or voronoi)."""
+    if tex.kind == "noise":
+        return g.ramp(noise_fac, tex.colors)
+    if tex.kind == "checker":
+        pat = g.new("ShaderNodeTexChecker")
+        pat.inputs["Color1"].default_value = [*tex.colors[0], 1.0]
+        pat.inputs["Color2"].default_value = [*tex.colors[1], 1.0]
+        pat.inputs["Scale"].default_value = 1.0
+        g.link(vec, pat.inputs["Vector"])
+        return pat.outputs["Color"]
+    pat = g.new("ShaderNodeTexVoronoi")  # voronoi
+    pat.inputs["Scale"].default_value = 1.0
+    g.link(vec, pat.inputs["Vector"])
+    return g.ramp(pat.outputs["Distance"], tex.colors)
+
+
+def _normal_shading(g: _Nodes) -> Any:
+    """The socket ``0.55 + 0.45 |n . SHADE_DIRECTION|`` of the world normal: a fixed function of it."""
+    geo = g.new("ShaderNodeNewGeometry")
+    dot = g.new("ShaderNodeVectorMath")
+    dot.operation = "DOT_PRODUCT"
+    g.link(geo.outputs["Normal"], dot.inputs[0])
+    dot.inputs[1].default_value = (SHADE_DIRECTION / np.linalg.norm(SHADE_DIRECTION)).tolist()
+    shade = g.math("MULTIPLY_ADD", g.math("ABSOLUTE", dot.outputs["Value"], 0.0), 0.45)
+    shade.node.inputs[2].default_value = 0.55
+    return shade

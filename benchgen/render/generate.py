@@ -236,6 +236,7 @@ class Summary:
     intervals: list[list[float]] = field(default_factory=list)
     names: list[str] = field(default_factory=list)
     verification: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def passed(self) -> bool:
@@ -263,6 +264,7 @@ class Summary:
             )
         for c in bad:
             out.append(f"  FAILED configuration {c['index']:03d}: {'; '.join(c['failures'])}")
+        out.extend(f"  note: {n}" for n in self.notes)
         return out
 
 
@@ -281,7 +283,7 @@ def _check_output(root: Path, spec_text: str) -> None:
         raise UserError(f"{root} is not empty and holds no benchgen dataset; choose another --out")
 
 
-#: Temporary files of ``scenecore.dataset``'s atomic writes (``.NAME.RANDOM.tmp`` / ``.exr``).
+#: Temporary files of ``scenecore.atomic``'s atomic writes (``.NAME.RANDOM.tmp`` / ``.exr``).
 _TEMP_FILE = re.compile(r"^\..+\.[^.]+\.(tmp|exr)$")
 
 
@@ -388,7 +390,10 @@ def generate(
                 bar.update(len(r.task.frames))
         summary.verification = _verify_all(ex, built, root, configs, summary, progress, use_cache=True)
     D.write_verification(root, summary.verification)
-    D.write_transforms_json(root, scene)
+    try:
+        D.write_transforms_json(root, scene)
+    except D.DatasetError as e:  # e.g. one timestamp: the dataset is complete, only the interop files are impossible
+        summary.notes.append(f"no transforms_*.json (D-NeRF / nerfstudio): {e}")
     summary.wall_seconds = time.perf_counter() - t0
     return summary
 

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 def _scaled_config(iterations: int | None, config_file: str | None):
     """Training config, with every phase length scaled so field iterations total ``iterations``."""
-    from osn.train.loop import TrainConfig
+    from osn.train import TrainConfig
 
     cfg = TrainConfig.from_yaml(config_file) if config_file else TrainConfig()
     if iterations:
@@ -92,8 +92,10 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         from scenecore import dataset as D
         from scenecore.dataset import atomic_write_json
 
-        from osn.preprocess.inputs import InputsError, oracle_inputs, save_inputs
-        from osn.preprocess.sfm import PreprocessConfig, preprocess_dataset
+        from osn.preprocess.inputs import InputsError, save_inputs
+        from osn.preprocess.oracle import oracle_inputs
+        from osn.preprocess.sfm import PreprocessConfig
+        from osn.preprocess.video import preprocess_dataset
 
         video = D.read_training_video(dataset, D.load_scene(dataset))  # read once for both
         save_inputs(oracle_dir, oracle_inputs(dataset, video=video))
@@ -118,30 +120,31 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
 
     def train() -> dict:
         from osn.preprocess.inputs import load_inputs
-        from osn.train.loop import read_metrics
-        from osn.train.loop import train as train_run
+        from osn.cli.train import train_on_dataset
+        from osn.train import read_metrics
 
         resume = (run_dir / "checkpoint.pt").exists()
         inputs = None if resume else load_inputs(sfm if args.inputs == "colmap" else oracle_dir)
-        train_run(dataset, run_dir, train_cfg, resume=resume, inputs=inputs)
+        train_on_dataset(dataset, run_dir, train_cfg, inputs=inputs, resume=resume)  # measured against its exact region
         last = read_metrics(run_dir / "metrics.jsonl")[-1]
         print(f"  training: PSNR {last.get('psnr', float('nan')):.2f} dB, valid-set IoU {last.get('iou', float('nan')):.3f} "
               f"after {last['wall_time']:.0f} s")
         return {k: last.get(k) for k in ("psnr", "iou", "wall_time", "iteration")}
 
     def sample() -> dict:
-        from osn.evaluate.evaluation import sample_configurations
         from osn.model.run import load_run
+        from osn.sample.configurations import sample_configurations
 
         s = sample_configurations(load_run(run_dir), args.n, args.threshold, args.seed)
         s.save(run_dir / "samples.npz")
         return {"n": len(s.sbar), "fell_back": s.fell_back}
 
     def evaluate() -> dict:
-        from osn.evaluate.evaluation import EvalConfig, Samples
-        from osn.evaluate.evaluation import evaluate as ev
+        from osn.evaluate.bestofn import EvalConfig
+        from osn.evaluate.bestofn import evaluate as ev
         from osn.evaluate.report import write_report
         from osn.model.run import load_run
+        from osn.sample.configurations import Samples
 
         run = load_run(run_dir)
         res = ev(run, dataset, Samples.load(run_dir / "samples.npz"), EvalConfig(max_views=args.max_views))
@@ -149,9 +152,10 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         return {"table": res.table, "valid_set": res.valid_set, "scale_error": res.scale_error}
 
     def export() -> dict:
-        from osn.export.writer import export_run
+        from osn.export.from_run import export_run
 
-        export_run(run_dir, export_dir)  # the configurations the sample stage drew and evaluated
+        # the configurations the sample stage drew and evaluated, and the dataset's test cameras
+        export_run(run_dir, export_dir, dataset=dataset)
         return {}
 
     def addon() -> dict:

@@ -1,4 +1,4 @@
-"""``osn sample`` and ``osn evaluate``: command-line front ends of :mod:`osn.evaluate`."""
+"""``osn sample`` and ``osn evaluate``: command-line front ends of :mod:`osn.sample` and :mod:`osn.evaluate`."""
 
 from __future__ import annotations
 
@@ -9,12 +9,13 @@ import time
 from pathlib import Path
 
 from scenecore.cli import UserError, subcommand
+from osn.evaluate.bestofn import EvalConfig, evaluate
+from osn.evaluate.report import summary_lines, write_report
+from osn.model.run import load_run
+from osn.sample.configurations import Samples, sample_configurations
 
 
 def _cmd_sample(args: argparse.Namespace) -> int:
-    from osn.evaluate.evaluation import sample_configurations
-    from osn.model.run import load_run
-
     t0 = time.perf_counter()
     run = load_run(args.run)
     s = sample_configurations(run, args.n, args.threshold, args.seed)
@@ -27,16 +28,12 @@ def _cmd_sample(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from osn.evaluate.evaluation import EvalConfig, Samples, evaluate
-    from osn.evaluate.report import summary_lines, write_report
-    from osn.model.run import load_run
-
+    cfg = EvalConfig(max_views=args.max_views, levels=args.levels, topk=args.topk, lpips=not args.no_lpips, seed=args.seed)
     run = load_run(args.run)
     samples_path = Path(args.samples) if args.samples else Path(args.run) / "samples.npz"
     samples = Samples.load(samples_path)
     if samples.sbar.shape[1] != run.inputs.num_objects:
         raise UserError(f"{samples_path}: samples have {samples.sbar.shape[1]} objects, the run has {run.inputs.num_objects}")
-    cfg = EvalConfig(max_views=args.max_views, levels=args.levels, topk=args.topk, lpips=not args.no_lpips, seed=args.seed)
     t0 = time.perf_counter()
     res = evaluate(run, args.data, samples, cfg)
     res.timings["total_s"] = time.perf_counter() - t0

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from scenecore.dataset import atomic_write_bytes, atomic_write_json
-from osn.evaluate.evaluation import EvalResult
+from osn.evaluate.bestofn import EvalResult
 
 METRICS = [("psnr", "PSNR ↑", "{:.2f}"), ("ssim", "SSIM ↑", "{:.3f}"), ("lpips", "LPIPS ↓", "{:.3f}"),
            ("ssimae", "SSIMAE ↓", "{:.3f}"), ("pq", "PQ ↑", "{:.1f}"), ("miou", "mIoU ↑", "{:.1f}")]
@@ -124,7 +124,7 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
     """Write ``report.md``, ``metrics.json`` and the plots to ``out_dir``; returns the report path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    from osn.train.loop import read_metrics
+    from osn.train import read_metrics
 
     train_log = read_metrics(run_dir / "metrics.jsonl")  # lines cut by a kill are skipped
     plots = write_plots(res, train_log, out)

@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from scenecore.config import Rule, choice, integer, number, validate
+
 #: Added to the raw density before softplus so a zero-initialised field starts nearly empty
 #: (TensoRF's ``density_shift``): unobserved space then stays empty instead of becoming floaters.
 DENSITY_SHIFT = -4.0
@@ -52,6 +54,7 @@ class Field(nn.Module):
         return (x - lo) / (hi - lo) * 2.0 - 1.0
 
     def inside(self, xn: torch.Tensor) -> torch.Tensor:
+        """Bool ``(N,)``: box coordinates ``xn (N, 3)`` lie in the box."""
         return (xn.abs() <= 1.0).all(-1)
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
@@ -79,7 +82,7 @@ class Field(nn.Module):
         raise NotImplementedError
 
     def density_tv(self) -> torch.Tensor:
-        """Total variation (mean squared neighbour difference) of the raw density parameters.
+        """Total variation (mean squared neighbour difference) of the raw density parameters, a scalar.
 
         A smoothness prior for space no training ray constrains: with Adam its gradient moves
         unobserved voxels towards their neighbours, so surfaces hidden in every frame (the floor
@@ -131,7 +134,8 @@ class DenseGridField(Field):
         return torch.sigmoid(trilinear(self.grid[:, 1:], self.resolution, xn))
 
     def density_and_color(self, x: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Both at once with a single 4-channel lookup (the common case in training)."""
+        """Density ``(N,)`` and RGB ``(N, 3)`` at points ``x (N, 3)`` seen along ``dirs (N, 3)``, with a
+        single 4-channel lookup (the common case in training)."""
         xn = self.normalise(x)
         v = trilinear(self.grid, self.resolution, xn)
         sigma = F.softplus(v[:, 0] + DENSITY_SHIFT)
@@ -158,7 +162,10 @@ class DenseGridField(Field):
 
 
 def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
-    """NeRF frequency encoding ``[sin(2^i x), cos(2^i x)]`` for i < freqs (without x itself)."""
+    """NeRF frequency encoding ``[sin(2^i x), cos(2^i x)]`` for i < freqs (without x itself).
+
+    ``x (..., C)`` -> ``(..., 2 * C * freqs)`` (sines of every channel and frequency, then cosines).
+    """
     if freqs == 0:
         return x[..., :0]
     scales = 2.0 ** torch.arange(freqs, device=x.device, dtype=x.dtype)
@@ -230,6 +237,7 @@ class TensoRFVM(Field):
         return torch.sigmoid(self.mlp(h))
 
     def density_and_color(self, x: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density ``(N,)`` and RGB ``(N, 3)`` at points ``x (N, 3)`` seen along ``dirs (N, 3)``."""
         return self.density(x), self.color(x, dirs)
 
     @torch.no_grad()
@@ -252,6 +260,19 @@ class TensoRFVM(Field):
     def density_tv(self) -> torch.Tensor:
         p, ln = self.density_planes, self.density_lines  # TensoRF's TV on the VM factors
         return torch.diff(p, dim=2).square().mean() + torch.diff(p, dim=3).square().mean() + torch.diff(ln, dim=2).square().mean()
+
+
+_FIELD_RULES: dict[str, Rule] = {
+    "kind": choice("dense", "tensorf"),
+    # Trilinear interpolation needs 2 voxels per axis.
+    "resolution": integer(2),
+    "initial_resolution": integer(2),
+    "upsample_steps": integer(0),
+    # A fractional count (1.5 layers) would crash later, as a traceback.
+    **{name: integer(1) for name in ("density_components", "appearance_components", "app_dim", "hidden")},
+    **{name: number(0.0, lo_open=True, what="a positive learning rate") for name in ("lr_grid", "lr_net")},
+    "tv_density": number(0.0),
+}
 
 
 @dataclass
@@ -281,24 +302,7 @@ class FieldConfig:
     tv_density: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.kind not in ("dense", "tensorf"):
-            raise ValueError(f"field.kind must be dense or tensorf, got {self.kind!r}")
-        for name in ("resolution", "initial_resolution"):  # trilinear interpolation needs 2 voxels
-            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 2):
-                raise ValueError(f"field.{name} must be an integer >= 2, got {getattr(self, name)!r}")
-        def count(name: str, least: int) -> None:  # 1.5 layers would crash later, as a traceback
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < least:
-                raise ValueError(f"field.{name} must be an integer >= {least}, got {v!r}")
-
-        for name in ("density_components", "appearance_components", "app_dim", "hidden"):
-            count(name, 1)
-        count("upsample_steps", 0)
-        for name in ("lr_grid", "lr_net"):
-            if not 0 < getattr(self, name) < float("inf"):
-                raise ValueError(f"field.{name} must be a positive learning rate, got {getattr(self, name)!r}")
-        if not self.tv_density >= 0:
-            raise ValueError(f"field.tv_density must be >= 0, got {self.tv_density!r}")
+        validate(self, "field", _FIELD_RULES)
 
     def resolutions(self) -> list[int]:
         """The resolution after each upsampling step, from ``initial_resolution`` to ``resolution``."""
@@ -310,7 +314,7 @@ class FieldConfig:
 
 
 def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: int | None = None) -> Field:
-    """Build the configured field for one object's box (at ``resolution`` or the initial one)."""
+    """Build the configured field for one object's box ``bbox (2, 3)`` (at ``resolution`` or the initial one)."""
     r = resolution if resolution is not None else cfg.resolutions()[0]
     if cfg.kind == "dense":
         return DenseGridField(bbox, r)

@@ -21,7 +21,7 @@ from osn.preprocess.inputs import InputsError, SceneInputs
 
 
 def split_similarity(S: np.ndarray) -> tuple[float, np.ndarray]:
-    """Split a 4x4 similarity ``[s R | t]`` into ``s`` and the 4x4 ``[R | t]``."""
+    """Split a ``(4, 4)`` similarity ``[s R | t]`` into ``s`` and the ``(4, 4)`` rigid ``[R | t]``."""
     s = float(np.cbrt(np.linalg.det(S[:3, :3])))
     if not np.isfinite(s) or s <= 0:
         raise InputsError(f"not a proper similarity (det = {np.linalg.det(S[:3, :3]):.3g})")
@@ -32,7 +32,8 @@ def split_similarity(S: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def novel_to_training_camera(inputs: SceneInputs, camera_to_world: np.ndarray, time_index: int) -> np.ndarray:
-    """Rigid transform (scene units) from a world-space OpenCV camera to the training camera at ``time_index``.
+    """Rigid ``(4, 4)`` transform (scene units) from a world-space OpenCV camera ``camera_to_world
+    (4, 4)`` to the training camera at ``time_index``.
 
     Camera coordinates in metres become scene units by the similarity's scale; the result maps
     scene-unit novel-camera coordinates to scene-unit training-camera coordinates.
@@ -53,7 +54,9 @@ def novel_to_training_camera(inputs: SceneInputs, camera_to_world: np.ndarray, t
 def object_transforms(
     inputs: SceneInputs, cam_to_traincam: np.ndarray, time_index: int, sbar: np.ndarray
 ) -> dict[int, np.ndarray]:
-    """4x4 similarity per object present at ``time_index``: camera point (scene units) -> object.
+    """``(4, 4)`` similarity per object present at ``time_index``: camera point (scene units) -> object.
+
+    ``cam_to_traincam (4, 4)`` is :func:`novel_to_training_camera`'s result; ``sbar (K,)``.
 
     ``sbar`` and the returned keys index objects by *position* in ``inputs.objects`` (as every
     scale vector in osn does; positions equal ids unless preprocessing dropped an object).

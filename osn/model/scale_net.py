@@ -51,11 +51,16 @@ class ScaleNet(nn.Module):
         return self.mlp(s * 2.0 - 1.0)[:, 0]
 
     def prob(self, s: torch.Tensor) -> torch.Tensor:
+        """Validity scores ``(N,)`` in (0, 1) of normalised free scales ``s (N, K-1)``."""
         return torch.sigmoid(self(s))
 
 
 def full_sbar(s_free: torch.Tensor, ranges: torch.Tensor, anchor: int) -> torch.Tensor:
-    """De-normalised ``(N, K)`` scale vectors from free normalised scales ``(N, K-1)``; anchor = 1."""
+    """De-normalised ``(N, K)`` scale vectors from free normalised scales ``(N, K-1)``; anchor = 1.
+
+    ``ranges (K, 2)`` is every object's Eq. 1 scale range (the anchor's row is ignored); the
+    result has ``ranges``'s dtype on ``s_free``'s device.
+    """
     K = ranges.shape[0]
     free = [k for k in range(K) if k != anchor]
     out = torch.ones(s_free.shape[0], K, dtype=ranges.dtype, device=s_free.device)
@@ -75,8 +80,9 @@ def sample_valid(
 ) -> tuple[torch.Tensor, torch.Tensor, float, bool]:
     """Draw one scale vector the network deems valid (score > ``threshold``).
 
-    Uniform candidates in [0, 1)^(K-1); one of those above the threshold is picked uniformly.
-    When none passes and ``near`` is given, ``near(candidates)`` supplies a second set (e.g.
+    Uniform candidates in [0, 1)^(K-1) (``ranges (K, 2)`` as in :func:`full_sbar`); one of those
+    above the threshold is picked uniformly.
+    When none passes and ``near`` is given, ``near(candidates)`` supplies a second set ``(candidates, K-1)`` (e.g.
     around vectors labelled valid before: the valid share of the box shrinks exponentially with
     the object count, so uniform candidates can all miss it) and one of those that pass is
     picked; the uniform draw, which covers the whole valid set, stays the rule. When none

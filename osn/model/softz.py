@@ -45,12 +45,16 @@ def scaled_log_depth(depth: torch.Tensor, covered: torch.Tensor, sbar: torch.Ten
 
 
 def implied_segmentation(depth: torch.Tensor, covered: torch.Tensor, sbar: torch.Tensor) -> torch.Tensor:
-    """Hard segmentation ``(H, R)``: the covering object with the smallest scaled depth."""
+    """Hard segmentation ``(H, R)``: the covering object with the smallest scaled depth.
+
+    ``depth (R, K)``, ``covered (R, K)`` and ``sbar (H, K)`` as in :func:`scaled_log_depth`.
+    """
     return scaled_log_depth(depth, covered, sbar).argmin(-1)
 
 
 def soft_segmentation_log(depth: torch.Tensor, covered: torch.Tensor, sbar: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
-    """Eq. 18 as log-probabilities ``(H, R, K)``: ``log_softmax_k(-sbar_k d_k / temperature)``.
+    """Eq. 18 as log-probabilities ``(H, R, K)``: ``log_softmax_k(-sbar_k d_k / temperature)``
+    of ``depth (R, K)``, ``covered (R, K)`` and ``sbar (H, K)`` (see :func:`scaled_log_depth`).
 
     Objects that do not cover the ray get ``-inf``. Rays that no object covers get a uniform
     distribution. The argmax equals :func:`implied_segmentation` (up to exact ties).
@@ -74,7 +78,7 @@ def sample_accuracy(seg: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
 
 def validity_labels(accuracy: torch.Tensor, tolerance: float = 0.0, topk: int = 1, noise_floor: float = 0.0) -> tuple[torch.Tensor, bool]:
-    """0/1 label per scale sample from its accuracy on the batch's contested rays (Eq. 13).
+    """0/1 label ``(H,)`` per scale sample from its accuracy ``(H,)`` on the batch's contested rays (Eq. 13).
 
     A sample is valid when its error rate ``1 - accuracy`` is at most ``noise_floor +
     tolerance``. ``noise_floor`` is the error rate no scale vector avoids (learned geometry is
@@ -99,7 +103,8 @@ def softz_labels(
     topk: int = 1,
     noise_floor: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, bool]:
-    """Labels of ``H`` scale samples from one depth render of a ray batch.
+    """Labels of ``H`` scale samples ``sbar (H, K)`` from one depth render of a ray batch:
+    ``depth (R, K)``, ``covered (R, K)`` and the mask label ``gt (R,)`` per ray.
 
     Only contested rays count: the ground-truth object covers the ray and at least one other
     object does too. Returns ``(labels (H,), accuracy (H,), fell_back)``.

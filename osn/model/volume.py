@@ -4,7 +4,7 @@ Rays are given in the *camera frame* of a training frame (or any camera expresse
 one): ``dirs_cam (R, 3)`` from :func:`scenecore.cameras.pixel_rays` with unit camera z, so the ray
 parameter ``t`` is the planar depth. For a configuration ``sbar`` (``sbar_anchor = 1``, scene
 unit = anchor unit) object k sees the ray ``o_k + t * v_k`` with ``o_k = cam_to_obj_k[:3, 3]`` and
-``v_k = R_k dirs_cam / sbar_k`` (see :mod:`osn.inputs`), so a single ``t`` is shared by all
+``v_k = R_k dirs_cam / sbar_k`` (see :mod:`osn.preprocess.inputs`), so a single ``t`` is shared by all
 objects and is the scene-space planar depth.
 
 Composite rendering follows Total-Recon: total density is the sum of the objects' densities and
@@ -50,14 +50,15 @@ class RenderOutput:
     log_seg: torch.Tensor
 
     def normalised_depth(self) -> torch.Tensor:
-        """Depth of the visible surface, ``depth / acc`` (guarded where nothing is hit)."""
+        """Depth ``(R,)`` of the visible surface, ``depth / acc`` (guarded where nothing is hit)."""
         return self.depth / self.acc.clamp_min(1e-6)
 
 
 def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Slab intersection of rays ``o + t v`` with an axis-aligned box ``(2, 3)``.
+    """Slab intersection of rays ``o + t v`` (``origins``, ``dirs`` ``(R, 3)``) with an axis-aligned
+    box ``bbox (2, 3)`` (min and max corner).
 
-    Returns ``(t0, t1)``; the ray misses when ``t1 <= t0``. Zero direction components are
+    Returns ``(t0 (R,), t1 (R,))``; the ray misses when ``t1 <= t0``. Zero direction components are
     replaced by a tiny value of the same sign so the slab test stays finite.
     """
     tiny = 1e-12
@@ -70,7 +71,7 @@ def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor) -> tu
 
 
 def transmittance_weights(optical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weights and log-weights of ordered samples with optical thickness ``(R, S)`` (>= 0).
+    """Weights ``(R, S)`` and log-weights ``(R, S)`` of ordered samples with optical thickness ``(R, S)`` (>= 0).
 
     ``w_i = T_i (1 - exp(-tau_i))`` with ``log T_i = -sum_{j<i} tau_j`` (exclusive cumsum, no
     subtraction so no ``inf - inf``). ``log_w`` is floored at ``log(1e-30)`` for the opacity
@@ -93,7 +94,7 @@ class ObjectRays:
         field: the object's field.
         cam_to_obj: ``(R, 4, 4)`` similarity from each ray's camera frame (ray units) to the
             object, e.g. ``cam_to_obj_k[n] @ diag(1/sbar_k)`` for training frame n, or
-            :func:`osn.placement.object_transforms` for a novel camera; any value where absent.
+            :func:`osn.model.placement.object_transforms` for a novel camera; any value where absent.
         present: ``(R,)`` bool, False where the object has no pose in the ray's frame.
         t_range: ``(R, 2)`` or ``(2,)`` planar-depth range (ray units) the object is sampled in,
             intersected with its box.
@@ -149,7 +150,8 @@ def render(
 
     The configuration (scales) is folded into each object's ``cam_to_obj`` similarity; ``t``
     and the returned depth are in the ray camera's unit (scene units for a configuration,
-    the object's own unit when one object is rendered with its rigid pose).
+    the object's own unit when one object is rendered with its rigid pose). Returns per-ray
+    ``(R, ...)`` results (:class:`RenderOutput`) with ``K = len(objects)``.
 
     Args:
         objects: per object its field, camera-to-object similarity, presence and depth range.

@@ -1,11 +1,14 @@
-"""Per-object inputs of OSN, and the ``oracle`` preprocessing that derives them from ground truth.
+"""Per-object inputs of OSN: the format every preprocessing path writes and training reads.
 
 OSN never sees a shared metric scene. For every object k it gets what per-object SfM would give:
 camera-to-object poses for the frames where k is seen, sparse planar depths at some of its
 pixels, both in k's *own unknown unit*, plus the instance masks. This module owns that format
-(``inputs.json`` + ``inputs.npz`` in a directory) and the ``oracle`` path, which computes the same
-quantities from a benchgen dataset's ground truth. The oracle separates learning errors from SfM
-errors; ``osn preprocess`` (pycolmap) writes the same format from images alone.
+(:class:`SceneInputs`; ``inputs.json`` + ``inputs.npz`` in a directory: :func:`save_inputs`,
+:func:`load_inputs`, :func:`check_inputs`) and the normalisation shared by its writers
+(:func:`object_inputs_from_observations`). ``osn oracle`` (:mod:`osn.preprocess.oracle`) computes
+the inputs from a benchgen dataset's ground truth, which separates learning errors from SfM
+errors; ``osn preprocess`` (pycolmap, :mod:`osn.preprocess.sfm`) writes the same format from
+images alone.
 
 Conventions:
 * Object coordinates: the OpenCV camera frame of the object's first frame, in the object's own
@@ -20,6 +23,7 @@ Conventions:
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +32,7 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore.cameras import invert_pose, pixel_rays
+from scenecore.config import Rule, number
 
 #: Mask value of pixels that no loss may use (objects dropped by preprocessing).
 IGNORE_ID = 254
@@ -165,8 +170,6 @@ def save_inputs(out_dir: str | Path, inputs: SceneInputs) -> None:
         arrays[p + "sparse_depth"] = np.concatenate(o.sparse_depth) if len(counts) else np.zeros(0)
         arrays[p + "sparse_weight"] = np.concatenate(o.sparse_weight) if len(counts) else np.zeros(0)
         objs.append({"id": o.id, "name": o.name, "near": o.near, "far": o.far, "unit_to_world": o.unit_to_world})
-    import io
-
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     D.atomic_write_bytes(out / "inputs.npz", buf.getvalue())
@@ -289,6 +292,22 @@ def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
         scale_range(inputs.scene_near, inputs.scene_far, o.near, o.far)
 
 
+#: Defaults shared by every writer of inputs (oracle and SfM normalise alike): the scene volume
+#: is ``[SCENE_NEAR_FACTOR * min_k near_k, SCENE_FAR_FACTOR * max_k far_k]`` (Eq. 1) and each
+#: canonical box is padded by ``BOX_PADDING`` of its extent.
+SCENE_NEAR_FACTOR = 0.3
+SCENE_FAR_FACTOR = 1.5
+BOX_PADDING = 0.1
+
+#: Config rules of the fields named like the defaults above (what :func:`scene_volume` and
+#: :func:`object_inputs_from_observations` accept), for :func:`scenecore.config.validate`.
+NORMALISATION_RULES: dict[str, Rule] = {
+    "scene_near_factor": number(0.0, 1.0, lo_open=True, hi_open=True),
+    "scene_far_factor": number(1.0),
+    "box_padding": number(0.0),
+}
+
+
 def scene_volume(objects: list[ObjectInputs], near_factor: float, far_factor: float) -> tuple[float, float]:
     """Scene near/far of Eq. 1: below every object's near and beyond every object's far."""
     if not (0 < near_factor < 1 <= far_factor):
@@ -352,96 +371,3 @@ def object_inputs_from_observations(
         sparse_weight=[np.asarray(w, dtype=np.float64) for w in sparse_weight],
         unit_to_world=None if metres_per_unit is None else unit * metres_per_unit,
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Oracle preprocessing
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class OracleConfig:
-    """Options of the oracle preprocessing.
-
-    Attributes:
-        points_per_frame: sparse depths kept per object and frame (SfM-like density).
-        min_pixels: an object is used in a frame only if it covers at least this many pixels.
-        scene_near_factor, scene_far_factor: the scene volume is
-            ``[factor_near * min_k near_k, factor_far * max_k far_k]`` in object units (Eq. 1).
-        box_padding: relative padding of each object's canonical box around its points.
-        seed: random seed of the sparse subsampling.
-    """
-
-    points_per_frame: int = 256
-    min_pixels: int = 16
-    scene_near_factor: float = 0.3
-    scene_far_factor: float = 1.5
-    box_padding: float = 0.1
-    seed: int = 0
-
-
-def oracle_inputs(
-    dataset_root: str | Path,
-    cfg: OracleConfig | None = None,
-    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-) -> SceneInputs:
-    """Derive per-object inputs from a benchgen dataset's ground truth (see module docstring).
-
-    ``video``: the dataset's :func:`scenecore.dataset.read_training_video`, when the caller has
-    read it already (it is read here otherwise).
-    """
-    cfg = cfg or OracleConfig()
-    root = Path(dataset_root)
-    scene = D.load_scene(root)
-    rng = np.random.default_rng(cfg.seed)
-    T = len(scene.timestamps)
-    train = sorted(scene.train_frames, key=lambda f: f.time_index)
-    images_a, depths_a, masks_a = video if video is not None else D.read_training_video(root, scene)  # names bad files
-    K = scene.intrinsics.matrix()
-    c2w = np.stack([f.camera_to_world for f in train])
-
-    objects: list[ObjectInputs] = []
-    for obj in scene.objects:
-        frames = [t for t in range(T) if (masks_a[t] == obj.id).sum() >= cfg.min_pixels]
-        if not frames:
-            raise InputsError(f"{root}: object {obj.id} ({obj.name}) covers fewer than {cfg.min_pixels} pixels in every training frame")
-        pix_l, dep_l = [], []
-        for t in frames:
-            v, u = np.nonzero(masks_a[t] == obj.id)
-            n = min(cfg.points_per_frame, len(u))
-            pick = np.sort(rng.choice(len(u), size=n, replace=False))
-            pix_l.append(np.stack([u[pick], v[pick]], axis=1).astype(np.int64))
-            dep_l.append(depths_a[t][v[pick], u[pick]].astype(np.float64))
-        # Object frame = camera of the first frame (the object's body frame seen from there).
-        obj_from_world = [invert_pose(obj.poses[t]) for t in frames]
-        cam_to_body = np.stack([ofw @ c2w[t] for t, ofw in zip(frames, obj_from_world)])
-        objects.append(
-            object_inputs_from_observations(
-                obj.id, obj.name, np.array(frames), cam_to_body, pix_l, dep_l, [np.ones(len(d)) for d in dep_l],
-                K, scene.width, scene.height, cfg.box_padding, metres_per_unit=1.0,
-            )
-        )
-    scene_near, scene_far = scene_volume(objects, cfg.scene_near_factor, cfg.scene_far_factor)
-    anchor = objects[scene.anchor_id]
-    # Anchor coordinates from the world (the anchor is static in benchgen scenes): similarity.
-    a_obj = scene.objects[scene.anchor_id]
-    t0 = int(anchor.frames[0])
-    w2a = invert_pose(invert_pose(a_obj.poses[t0]) @ c2w[t0]) @ invert_pose(a_obj.poses[t0])
-    S = np.diag([1 / anchor.unit_to_world] * 3 + [1.0])
-    inputs = SceneInputs(
-        width=scene.width,
-        height=scene.height,
-        K=K,
-        timestamps=scene.timestamps.copy(),
-        images=images_a,
-        masks=masks_a,
-        objects=objects,
-        anchor=scene.anchor_id,
-        scene_near=scene_near,
-        scene_far=scene_far,
-        world_to_anchor=S @ w2a,
-        source="oracle",
-        meta={"dataset": str(root), "oracle": cfg.__dict__},
-    )
-    check_inputs(inputs, root)
-    return inputs

@@ -1,10 +1,10 @@
-"""``osn preprocess``: per-object SfM with pycolmap, from frames and instance masks.
+"""Per-object SfM with pycolmap: the COLMAP reconstruction of one object (``osn preprocess``).
 
 For every object, SIFT features are extracted only inside its mask, matched (exhaustively for
 short videos, sequentially for long ones) and reconstructed by incremental mapping with the known,
-shared pinhole camera (no intrinsics refinement). Each object's reconstruction has its own frame
-and unit; :func:`osn.inputs.object_inputs_from_observations` normalises it exactly as the oracle
-does, so ``osn train`` accepts either.
+shared pinhole camera (no intrinsics refinement); frames posed against their own matches are
+repaired (:mod:`osn.preprocess.repair`). Each object's reconstruction has its own frame and unit;
+:mod:`osn.preprocess.video` turns a whole video's reconstructions into per-object inputs.
 
 No GUI, every random seed fixed, single-threaded where threads change results.
 """
@@ -17,23 +17,12 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from scenecore import dataset as D
-from scenecore.cameras import fit_pose_similarity, intrinsics_from_fov, invert_pose, rotation_angle_deg
-from osn.preprocess.inputs import (
-    IGNORE_ID,
-    InputsError,
-    ObjectInputs,
-    OracleConfig,
-    SceneInputs,
-    check_inputs,
-    object_inputs_from_observations,
-    oracle_inputs,
-    scene_volume,
-)
+from scenecore.cameras import invert_pose
+from scenecore.config import choice, flag, integer, number, validate
+from osn.preprocess.inputs import BOX_PADDING, NORMALISATION_RULES, SCENE_FAR_FACTOR, SCENE_NEAR_FACTOR, InputsError
 from osn.preprocess.repair import bundle_adjust, repair_registrations
 
 log = logging.getLogger(__name__)
@@ -74,7 +63,7 @@ class PreprocessConfig:
             (:func:`_best_of_restarts` explains why a single run is not enough).
         min_epipolar_consistency: a registered frame with a smaller fraction of its verified
             matches within ``2 * epipolar_error`` of the model's epipolar geometry is re-posed
-            or dropped (:mod:`osn.sfm_repair`; correct frames measured 0.54-1.00, a wrong one 0.016).
+            or dropped (:mod:`osn.preprocess.repair`; correct frames measured 0.54-1.00, a wrong one 0.016).
         final_cauchy_px: scale (input-frame pixels) of the Cauchy loss of a last global bundle
             adjustment; 0 skips it. COLMAP's own global BA uses a squared loss, which lets the
             few bad observations of a weakly seen frame pull it (ring-toy at 1024 px, frame 0:
@@ -100,29 +89,45 @@ class PreprocessConfig:
     init_min_inliers: int = 30
     init_min_tri_angle: float = 4.0
     abs_pose_min_inliers: int = 12
-    scene_near_factor: float = OracleConfig.scene_near_factor
-    scene_far_factor: float = OracleConfig.scene_far_factor
-    box_padding: float = OracleConfig.box_padding
+    scene_near_factor: float = SCENE_NEAR_FACTOR
+    scene_far_factor: float = SCENE_FAR_FACTOR
+    box_padding: float = BOX_PADDING
     seed: int = 0
     mapper_restarts: int = 4
     min_epipolar_consistency: float = 0.2
     final_cauchy_px: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.matcher not in ("auto", "exhaustive", "sequential"):
-            raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
-        if self.upscale < 1:
-            raise ValueError(f"upscale must be a positive integer, got {self.upscale}")
-        if not self.epipolar_error > 0:
-            raise ValueError(f"epipolar_error must be a positive number of pixels, got {self.epipolar_error}")
-        if self.grey not in GREY_MODES:
-            raise ValueError(f"grey must be one of {', '.join(GREY_MODES)}, got {self.grey!r}")
-        if not (np.isfinite(self.final_cauchy_px) and self.final_cauchy_px >= 0):
-            raise ValueError(f"final_cauchy_px must be a finite number >= 0 (0: no final robust BA), got {self.final_cauchy_px}")
-        if not 0.0 <= self.min_epipolar_consistency < 1.0:
-            raise ValueError(f"min_epipolar_consistency must be in [0, 1), got {self.min_epipolar_consistency}")
-        if self.on_failure not in ("stop", "skip"):
-            raise ValueError(f"on_failure must be stop or skip, got {self.on_failure!r}")
+        validate(self, "preprocess", PREPROCESS_RULES)
+
+
+#: What :class:`PreprocessConfig` accepts (checked in ``__post_init__``).
+PREPROCESS_RULES = {
+    "matcher": choice("auto", "exhaustive", "sequential"),
+    "exhaustive_max_frames": integer(0),
+    "sequential_overlap": integer(1),
+    "max_features": integer(1),
+    "peak_threshold": number(0.0, lo_open=True),
+    "guided_matching": flag(),
+    "epipolar_error": number(0.0, lo_open=True, what="a positive number of pixels"),
+    "grey": choice(*GREY_MODES),
+    "mask_erosion": integer(0),
+    "upscale": integer(1),
+    "min_frames": integer(1),
+    "min_points": integer(0),
+    "min_mask_pixels": integer(1),
+    "on_failure": choice("stop", "skip"),
+    "max_reprojection_error": number(0.0, lo_open=True),
+    "min_matches": integer(0),
+    "init_min_inliers": integer(0),
+    "init_min_tri_angle": number(0.0),
+    "abs_pose_min_inliers": integer(0),
+    **NORMALISATION_RULES,
+    "seed": integer(0),
+    "mapper_restarts": integer(0),  # 0 runs the mapper once, like 1
+    "min_epipolar_consistency": number(0.0, 1.0, hi_open=True),
+    "final_cauchy_px": number(0.0, what="a finite number >= 0 (0: no final robust BA)"),
+}
 
 
 class ObjectRegistrationError(InputsError):
@@ -145,7 +150,7 @@ class ObjectSfM:
     reprojection_error_px: float = float("nan")
     #: Every model of every mapper restart: seed, frames registered, mean reprojection error (px).
     restarts: list[dict] = field(default_factory=list)
-    #: Frames whose pose contradicted their verified matches, and what was done (osn.sfm_repair).
+    #: Frames whose pose contradicted their verified matches, and what was done (osn.preprocess.repair).
     repaired_frames: list[dict] = field(default_factory=list)
 
 
@@ -230,19 +235,17 @@ def reconstruct_object(
     Raises:
         ObjectRegistrationError: too few frames, features or points; the message says what helps.
     """
-    import imageio.v3 as iio
     import pycolmap
 
     # COLMAP logs every step to stderr; our own messages say what matters.
     pycolmap.logging.minloglevel = int(os.environ.get("OSN_COLMAP_LOGLEVEL", 3))
     label = f"object {object_id}" + (f" ({name})" if name else "")
-    T, H, W = masks.shape
+    T = masks.shape[0]
     frames = [t for t in range(T) if (masks[t] == object_id).sum() >= cfg.min_mask_pixels]
-    advice = "use more frames, a higher resolution, or more texture on the object"
     if len(frames) < cfg.min_frames:
         raise ObjectRegistrationError(
             f"{label}: visible in {len(frames)} frame(s) (>= {cfg.min_mask_pixels} pixels), "
-            f"needs >= {cfg.min_frames}; {advice}"
+            f"needs >= {cfg.min_frames}; {ADVICE}"
         )
     if work_dir is None:
         work = Path(tempfile.mkdtemp(prefix=f"osn_sfm_{object_id}_"))
@@ -250,92 +253,140 @@ def reconstruct_object(
         work = Path(work_dir)
         work.mkdir(parents=True)
     try:
-        img_dir, mask_dir, out_dir = work / "images", work / "masks", work / "sparse"
-        for d in (img_dir, mask_dir, out_dir):
-            d.mkdir()
-        names = []
-        frames_img = dict(zip(frames, images[frames]))
-        if cfg.grey != "luminance":
-            grey = principal_grey(images[frames], masks[frames] == object_id, cfg.grey)
-            if grey is not None:
-                frames_img = dict(zip(frames, grey))
-        for t in frames:
-            n = f"{t:05d}.png"
-            names.append(n)
-            m = _erode(masks[t] == object_id, cfg.mask_erosion)
-            iio.imwrite(img_dir / n, _upscale(frames_img[t], cfg.upscale))
-            iio.imwrite(mask_dir / f"{n}.png", _upscale((m * 255).astype(np.uint8), cfg.upscale, order=0))
-        db = work / "database.db"
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
-        u = cfg.upscale  # pixel corners stay at integers, so every intrinsic scales by u
-        reader.camera_params = f"{u * K[0, 0]},{u * K[1, 1]},{u * K[0, 2]},{u * K[1, 2]}"
-        reader.mask_path = str(mask_dir)
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = 1
-        extraction.sift.max_num_features = cfg.max_features
-        extraction.sift.peak_threshold = cfg.peak_threshold
-        pycolmap.extract_features(
-            db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-        )
-        database = pycolmap.Database.open(db)
-        try:
-            num_features = int(database.num_keypoints())
-        finally:
-            database.close()
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = 1
-        matching.guided_matching = cfg.guided_matching
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.ransac.max_error = cfg.epipolar_error * cfg.upscale  # in SIFT-image pixels
-        use_seq = cfg.matcher == "sequential" or (cfg.matcher == "auto" and len(frames) > cfg.exhaustive_max_frames)
-        if use_seq:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = cfg.sequential_overlap
-            pycolmap.match_sequential(
-                db, matching_options=matching, pairing_options=pairing, verification_options=verification,
-                device=pycolmap.Device.cpu,
-            )
-        else:
-            pycolmap.match_exhaustive(
-                db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
-            )
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.num_threads = 1
-        opts.mapper.num_threads = 1
-        opts.ba_refine_focal_length = False
-        opts.ba_refine_principal_point = False
-        opts.ba_refine_extra_params = False
-        opts.min_model_size = min(cfg.min_frames, 3)
-        # COLMAP's defaults (100 inliers, 16 degrees) are tuned for megapixel photos; a 128x128
-        # object crop has tens of matches and a short baseline.
-        opts.min_num_matches = cfg.min_matches
-        opts.mapper.init_min_num_inliers = cfg.init_min_inliers
-        opts.mapper.init_min_tri_angle = cfg.init_min_tri_angle
-        opts.mapper.abs_pose_min_num_inliers = cfg.abs_pose_min_inliers
-        rec, tried = _best_of_restarts(db, img_dir, out_dir, opts, cfg)
-        if rec is None:
-            raise ObjectRegistrationError(
-                f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {advice}"
-            )
-        repaired = repair_registrations(
-            rec, db, np.diag([u, u, 1.0]) @ K, 2.0 * cfg.epipolar_error * u, cfg.min_epipolar_consistency,
-            cfg.abs_pose_min_inliers, cfg.seed,
-        )
-        if cfg.final_cauchy_px > 0:
-            bundle_adjust(rec, cfg.final_cauchy_px * u)
-        if work_dir is not None:
-            (work / "model").mkdir()
-            rec.write(str(work / "model"))
-        sfm = _collect(rec, label, frames, num_features, cfg, advice, W, H)
-        sfm.reprojection_error_px = rec.compute_mean_reprojection_error() / cfg.upscale
-        sfm.restarts = tried
-        sfm.repaired_frames = repaired
-        return sfm
+        return _reconstruct_in(work, images, masks, frames, object_id, K, cfg, label, keep_model=work_dir is not None)
     finally:
         if work_dir is None:
             shutil.rmtree(work, ignore_errors=True)
+
+
+#: The end of every registration failure's message.
+ADVICE = "use more frames, a higher resolution, or more texture on the object"
+
+
+def _reconstruct_in(
+    work: Path, images: np.ndarray, masks: np.ndarray, frames: list[int], object_id: int, K: np.ndarray,
+    cfg: PreprocessConfig, label: str, keep_model: bool,
+) -> ObjectSfM:
+    """:func:`reconstruct_object` inside the empty directory ``work``, from the ``frames`` where
+    the object is visible; with ``keep_model`` the final model is written to ``work/model``."""
+    H, W = masks.shape[1:]
+    img_dir, mask_dir, out_dir = work / "images", work / "masks", work / "sparse"
+    for d in (img_dir, mask_dir, out_dir):
+        d.mkdir()
+    names = _write_colmap_images(img_dir, mask_dir, images, masks, frames, object_id, cfg)
+    db = work / "database.db"
+    num_features = _extract_features(db, img_dir, mask_dir, names, K, cfg)
+    _match_features(db, len(frames), cfg)
+    rec, tried = _best_of_restarts(db, img_dir, out_dir, _mapper_options(cfg), cfg)
+    if rec is None:
+        raise ObjectRegistrationError(
+            f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {ADVICE}"
+        )
+    u = cfg.upscale
+    repaired = repair_registrations(
+        rec, db, np.diag([u, u, 1.0]) @ K, 2.0 * cfg.epipolar_error * u, cfg.min_epipolar_consistency,
+        cfg.abs_pose_min_inliers, cfg.seed,
+    )
+    if cfg.final_cauchy_px > 0:
+        bundle_adjust(rec, cfg.final_cauchy_px * u)
+    if keep_model:
+        (work / "model").mkdir()
+        rec.write(str(work / "model"))
+    sfm = _collect(rec, label, frames, num_features, cfg, W, H)
+    sfm.reprojection_error_px = rec.compute_mean_reprojection_error() / cfg.upscale
+    sfm.restarts = tried
+    sfm.repaired_frames = repaired
+    return sfm
+
+
+def _write_colmap_images(
+    img_dir: Path, mask_dir: Path, images: np.ndarray, masks: np.ndarray, frames: list[int], object_id: int,
+    cfg: PreprocessConfig,
+) -> list[str]:
+    """Write the ``frames`` SIFT sees (grey per ``cfg.grey``, upsampled) and the object's eroded
+    masks in COLMAP's layout (``NAME.png`` and ``NAME.png.png``); returns the image names."""
+    import imageio.v3 as iio
+
+    names = []
+    frames_img = dict(zip(frames, images[frames]))
+    if cfg.grey != "luminance":
+        grey = principal_grey(images[frames], masks[frames] == object_id, cfg.grey)
+        if grey is not None:
+            frames_img = dict(zip(frames, grey))
+    for t in frames:
+        n = f"{t:05d}.png"
+        names.append(n)
+        m = _erode(masks[t] == object_id, cfg.mask_erosion)
+        iio.imwrite(img_dir / n, _upscale(frames_img[t], cfg.upscale))
+        iio.imwrite(mask_dir / f"{n}.png", _upscale((m * 255).astype(np.uint8), cfg.upscale, order=0))
+    return names
+
+
+def _extract_features(db: Path, img_dir: Path, mask_dir: Path, names: list[str], K: np.ndarray, cfg: PreprocessConfig) -> int:
+    """SIFT inside the masks into the database ``db`` with the known camera; returns the keypoint count."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    u = cfg.upscale  # pixel corners stay at integers, so every intrinsic scales by u
+    reader.camera_params = f"{u * K[0, 0]},{u * K[1, 1]},{u * K[0, 2]},{u * K[1, 2]}"
+    reader.mask_path = str(mask_dir)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = 1
+    extraction.sift.max_num_features = cfg.max_features
+    extraction.sift.peak_threshold = cfg.peak_threshold
+    pycolmap.extract_features(
+        db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
+    )
+    database = pycolmap.Database.open(db)
+    try:
+        return int(database.num_keypoints())
+    finally:
+        database.close()
+
+
+def _match_features(db: Path, num_frames: int, cfg: PreprocessConfig) -> None:
+    """Match and geometrically verify the features of ``db`` (sequential for long videos)."""
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1
+    matching.guided_matching = cfg.guided_matching
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.max_error = cfg.epipolar_error * cfg.upscale  # in SIFT-image pixels
+    use_seq = cfg.matcher == "sequential" or (cfg.matcher == "auto" and num_frames > cfg.exhaustive_max_frames)
+    if use_seq:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = cfg.sequential_overlap
+        pycolmap.match_sequential(
+            db, matching_options=matching, pairing_options=pairing, verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+    else:
+        pycolmap.match_exhaustive(
+            db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+        )
+
+
+def _mapper_options(cfg: PreprocessConfig):
+    """``pycolmap.IncrementalPipelineOptions``: single-threaded, fixed intrinsics, small-crop thresholds."""
+    import pycolmap
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = 1
+    opts.mapper.num_threads = 1
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    opts.min_model_size = min(cfg.min_frames, 3)
+    # COLMAP's defaults (100 inliers, 16 degrees) are tuned for megapixel photos; a 128x128
+    # object crop has tens of matches and a short baseline.
+    opts.min_num_matches = cfg.min_matches
+    opts.mapper.init_min_num_inliers = cfg.init_min_inliers
+    opts.mapper.init_min_tri_angle = cfg.init_min_tri_angle
+    opts.mapper.abs_pose_min_num_inliers = cfg.abs_pose_min_inliers
+    return opts
 
 
 def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: PreprocessConfig) -> tuple[object, list[dict]]:
@@ -367,15 +418,15 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: Preproc
     return best, tried
 
 
-def _collect(
-    rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, advice: str, width: int, height: int
-) -> ObjectSfM:
+def _collect(rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, width: int, height: int) -> ObjectSfM:
+    """The registered frames' poses and sparse depths of ``rec`` (a ``pycolmap.Reconstruction``)
+    in input pixels; raises when too few frames or points were reconstructed."""
     reg = sorted(rec.images.values(), key=lambda im: im.name)
     reg = [im for im in reg if im.has_pose]
     if len(reg) < cfg.min_frames or rec.num_points3D() < cfg.min_points:
         raise ObjectRegistrationError(
             f"{label}: registered {len(reg)} of {len(frames)} frames with {rec.num_points3D()} points "
-            f"from {num_features} features; needs >= {cfg.min_frames} frames and >= {cfg.min_points} points; {advice}"
+            f"from {num_features} features; needs >= {cfg.min_frames} frames and >= {cfg.min_points} points; {ADVICE}"
         )
     out_frames, poses, pix_l, dep_l, w_l = [], [], [], [], []
     for im in reg:
@@ -414,231 +465,3 @@ def _collect(
         num_points=int(rec.num_points3D()),
         candidate_frames=len(frames),
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Whole scenes
-# --------------------------------------------------------------------------------------------
-
-
-def preprocess_video(
-    images: np.ndarray,
-    masks: np.ndarray,
-    K: np.ndarray,
-    timestamps: np.ndarray,
-    object_names: dict[int, str],
-    anchor: int,
-    cfg: PreprocessConfig,
-    progress: Callable[[str], None] | None = None,
-) -> tuple[SceneInputs, PreprocessReport]:
-    """Per-object SfM for a whole video; returns inputs (SfM frames and units) and a report."""
-    T, H, W = masks.shape
-    report = PreprocessReport()
-    objects: list[ObjectInputs] = []
-    for oid, name in sorted(object_names.items()):
-        if progress:
-            progress(f"SfM of object {oid} ({name})")
-        try:
-            sfm = reconstruct_object(images, masks, oid, K, cfg, name)
-        except ObjectRegistrationError as e:
-            if cfg.on_failure == "stop" or oid == anchor:
-                raise
-            log.warning("%s -- training without it", e)
-            report.dropped.append(oid)
-            report.objects.append({"id": oid, "name": name, "error": str(e)})
-            continue
-        objects.append(
-            object_inputs_from_observations(
-                oid, name, sfm.frames, sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight,
-                K, W, H, cfg.box_padding, metres_per_unit=None,
-            )
-        )
-        report.objects.append(
-            {
-                "id": oid,
-                "name": name,
-                "candidate_frames": sfm.candidate_frames,
-                "registered_frames": len(sfm.frames),
-                "features": sfm.num_features,
-                "points": sfm.num_points,
-                # Without ground truth these say how much to trust the poses: the kept model's
-                # error, and how the restarts disagreed (a reversed twin fits visibly worse).
-                "reprojection_error_px": sfm.reprojection_error_px,
-                "restarts": sfm.restarts,
-                "repaired_frames": sfm.repaired_frames,
-            }
-        )
-    masks = masks.copy()
-    for oid in report.dropped:
-        masks[masks == oid] = IGNORE_ID
-    scene_near, scene_far = scene_volume(objects, cfg.scene_near_factor, cfg.scene_far_factor)
-    inputs = SceneInputs(
-        width=W, height=H, K=K, timestamps=np.asarray(timestamps, dtype=np.float64), images=images, masks=masks,
-        objects=objects, anchor=anchor, scene_near=scene_near, scene_far=scene_far, source="colmap",
-        meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
-    )
-    return inputs, report
-
-
-def report_lines(objects: list[dict]) -> list[str]:
-    """One line per object of a :class:`PreprocessReport` (and one per repaired frame)."""
-    lines = []
-    for r in objects:
-        if "error" in r:
-            lines.append(f"  object {r['id']} ({r['name']}): DROPPED: {r['error']}")
-            continue
-        line = (f"  object {r['id']} ({r['name']}): {r['registered_frames']}/{r['candidate_frames']} frames, "
-                f"{r['points']} points, reprojection error {r['reprojection_error_px']:.2f} px")
-        if "rotation_error_deg_max" in r:
-            line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
-                     f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")
-        lines.append(line)
-        for f in r.get("repaired_frames", []):
-            lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "
-                         f"matches fit SfM's pose, {100 * f['consistency_after']:.1f}% after)")
-    return lines
-
-
-def preprocess_dataset(
-    dataset_root: str | Path, cfg: PreprocessConfig, progress=None,
-    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-) -> tuple[SceneInputs, PreprocessReport]:
-    """Per-object SfM on a benchgen dataset's training video, aligned to its ground truth.
-
-    The dataset's instance masks stand in for a learned segmenter and its intrinsics are the
-    known camera. Ground truth is used only *after* SfM, to measure accuracy and to record each
-    object's unit and the world-to-anchor similarity (needed to place test cameras). ``video``:
-    :func:`scenecore.dataset.read_training_video`'s result when the caller already read it.
-    """
-    root = Path(dataset_root)
-    scene = D.load_scene(root)
-    if video is None:
-        video = D.read_training_video(root, scene)
-    oracle = oracle_inputs(root, OracleConfig(min_pixels=1, points_per_frame=1), video)
-    names = {o.id: o.name for o in scene.objects}
-    inputs, report = preprocess_video(
-        oracle.images, oracle.masks, oracle.K, oracle.timestamps, names, scene.anchor_id, cfg, progress
-    )
-    align_to_ground_truth(inputs, oracle, report, scene, depths=video[1])
-    inputs.meta["dataset"] = str(root)
-    check_inputs(inputs, root)
-    return inputs, report
-
-
-def align_to_ground_truth(
-    inputs: SceneInputs, oracle: SceneInputs, report: PreprocessReport, scene: D.Scene, depths: np.ndarray
-) -> None:
-    """Fill units, world-to-anchor and accuracy figures from ground truth.
-
-    Each object's metres per SfM unit is the median of ``depths (T, H, W)``, the rendered
-    ground-truth planar depth, over SfM depth at its sparse points. A similarity per object maps
-    the SfM camera poses (object frame) onto the ground-truth ones
-    (:func:`scenecore.cameras.fit_pose_similarity`); rotation and camera-centre errors are
-    measured after it. Its scale is not used as the unit: least squares on noisy camera centres
-    shrinks it (on the tests' 128 px scene the block's came out 0.41 of the truth, which skewed
-    every scale-based evaluation figure); its ratio to the depth unit is reported
-    (``similarity_unit_ratio``). An object whose similarity cannot be fitted still gets its unit.
-    """
-    by_id = {o.id: o for o in oracle.objects}
-    for o, rep in zip(inputs.objects, [r for r in report.objects if "error" not in r]):
-        gt = by_id[o.id]
-        o.unit_to_world = depth_unit(o, depths)
-        if o.unit_to_world is None:
-            rep["unit"] = "not measurable: no sparse point has a finite ground-truth depth"
-        slots = [gt.frame_slot(int(t)) for t in o.frames]
-        keep = [i for i, s in enumerate(slots) if s is not None]
-        gt_poses = gt.cam_to_obj[[slots[i] for i in keep]]
-        try:
-            S = fit_pose_similarity(o.cam_to_obj[keep], gt_poses)
-        except ValueError as e:
-            rep["alignment"] = f"not measurable: {e}"
-            continue
-        scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
-        R = S[:3, :3] / scale
-        if o.unit_to_world is not None:
-            rep["similarity_unit_ratio"] = scale * gt.unit_to_world / o.unit_to_world
-        c_sfm, c_gt = o.cam_to_obj[keep, :3, 3], gt_poses[:, :3, 3]
-        rot = [rotation_angle_deg(R @ o.cam_to_obj[i, :3, :3], gt.cam_to_obj[slots[i], :3, :3]) for i in keep]
-        aligned = c_sfm @ S[:3, :3].T + S[:3, 3]
-        err = np.linalg.norm(aligned - c_gt, axis=1) * gt.unit_to_world  # metres
-        gt_visible = len(gt.frames)
-        rep.update(
-            gt_visible_frames=gt_visible,
-            registered_fraction=len(o.frames) / max(gt_visible, 1),
-            rotation_error_deg_max=float(max(rot)),
-            rotation_error_deg_mean=float(np.mean(rot)),
-            center_error_m_mean=float(err.mean()),
-            center_error_m_max=float(err.max()),
-        )
-    # Test-view alignment: the similarity taking the ground-truth training cameras (world) onto
-    # the anchor's SfM cameras, so evaluation can bring test cameras into the anchor's frame.
-    anchor = inputs.object(inputs.anchor)
-    c2w = {f.time_index: f.camera_to_world for f in scene.train_frames}
-    try:
-        inputs.world_to_anchor = fit_pose_similarity(np.stack([c2w[int(t)] for t in anchor.frames]), anchor.cam_to_obj)
-    except ValueError as e:  # the inputs still train; evaluation says why it cannot place test views
-        log.warning("test-view alignment failed for the anchor %s: %s", anchor.name, e)
-        inputs.world_to_anchor = None
-        for rep in report.objects:
-            if rep.get("id") == anchor.id:
-                rep["test_view_alignment"] = f"failed: {e}"
-
-
-def depth_unit(obj: ObjectInputs, depths: np.ndarray) -> float | None:
-    """Metres per unit of ``obj``: the median of ground-truth planar depth ``depths (T, H, W)``
-    over the object's sparse depths at the same pixels (None without a usable point)."""
-    ratio = np.concatenate([
-        depths[int(t)][pix[:, 1], pix[:, 0]] / dep for t, pix, dep in zip(obj.frames, obj.sparse_pix, obj.sparse_depth)
-    ] or [np.zeros(0)])
-    ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
-    return float(np.median(ratio)) if len(ratio) else None
-
-
-def load_video(frames_dir: str | Path, masks_dir: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Read a video as sorted PNG/JPG frames plus same-named instance-id PNG masks.
-
-    Masks are single-channel 8-bit images of object ids (``255`` = no object). Raises
-    ``InputsError`` naming the file on a missing mask, a size mismatch or an unreadable image.
-    """
-    frames_dir, masks_dir = Path(frames_dir), Path(masks_dir)
-    if not frames_dir.is_dir():
-        raise InputsError(f"{frames_dir}: not a directory of frames")
-    files = sorted(p for p in frames_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-    if not files:
-        raise InputsError(f"{frames_dir}: no .png/.jpg frames")
-    images, masks = [], []
-    for p in files:
-        try:
-            img = D.read_rgb(p)
-        except D.DatasetError as e:
-            raise InputsError(str(e)) from None
-        mp = masks_dir / (p.stem + ".png")
-        try:
-            m = D.read_ids(mp)
-        except D.DatasetError as e:
-            raise InputsError(str(e)) from None
-        if m.shape != img.shape[:2] or (images and img.shape != images[0].shape):
-            raise InputsError(f"{mp}: size {m.shape[::-1]} does not match frame {p} {img.shape[1::-1]} or the first frame")
-        images.append(img)
-        masks.append(m)
-    ids = np.stack(masks)
-    if not np.any((ids != 255) & (ids != IGNORE_ID)):
-        raise InputsError(f"{masks_dir}: the masks hold no object id (every pixel is 255, no object)")
-    return np.stack(images), ids, [p.name for p in files]
-
-
-def intrinsics_from_args(intrinsics: str | None, fov: float | None, width: int, height: int) -> np.ndarray:
-    """3x3 intrinsics from ``"fx,fy,cx,cy"`` or a horizontal field of view in degrees."""
-    if intrinsics:
-        try:
-            fx, fy, cx, cy = (float(v) for v in intrinsics.split(","))
-        except ValueError:
-            raise InputsError(f"--intrinsics must be fx,fy,cx,cy (pixels), got {intrinsics!r}") from None
-        if not (fx > 0 and fy > 0 and np.isfinite([fx, fy, cx, cy]).all()):
-            raise InputsError(f"--intrinsics needs finite, positive focal lengths, got {intrinsics!r}")
-        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-    if fov:
-        if not 0 < fov < 180:
-            raise InputsError(f"--fov must lie between 0 and 180 degrees, got {fov}")
-        return intrinsics_from_fov(fov, width, height)
-    raise InputsError("a video directory needs --intrinsics fx,fy,cx,cy or --fov DEGREES")

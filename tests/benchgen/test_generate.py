@@ -55,6 +55,19 @@ def test_validator_accepts_output(tiny):
     assert D.validate(tiny) == []
     scene = D.load_scene(tiny)
     assert len(scene.train_frames) == 3 and len(scene.test_frames) == 9 and scene.num_configurations == 3
+    assert all((tiny / f"transforms_{s}.json").is_file() for s in ("train", "val", "test"))  # tests/scenecore/test_interop.py
+
+
+def test_single_timestamp_dataset_is_finished_without_transforms(tmp_path):
+    """D-NeRF needs the training video to run from time 0 to 1: with one timestamp generate still
+    finishes a valid dataset, leaves the transforms files out and says why."""
+    d = load_preset("tiny").to_dict()
+    d["rig"].update(times=1, views=3)
+    d.update(resolution=[16, 16], configs=2)
+    summary = generate(spec_from_dict(d, "tiny-one-time"), tmp_path / "ds", progress=False)
+    assert summary.passed and D.validate(tmp_path / "ds") == []
+    assert not list((tmp_path / "ds").glob("transforms_*.json"))
+    assert any("no transforms_*.json" in line and "exactly 1" in line for line in summary.lines())
 
 
 def test_every_configuration_reproduces_training_video(tiny, worker):

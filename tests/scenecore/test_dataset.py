@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scenecore import atomic
 from scenecore import dataset as D
 from tests.synthetic import synthetic_images, write_synthetic_dataset
 
@@ -73,7 +74,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(D.os, "replace", boom)
+    monkeypatch.setattr(atomic.os, "replace", boom)
     with pytest.raises(OSError):
         D.atomic_write_json(target, {"a": 2})
     assert json.loads(target.read_text()) == {"a": 1}
@@ -126,6 +127,31 @@ def test_validator_wrong_shape_and_dtype(ds):
     problems = D.validate(root)
     _one(problems, str(paths.rgb), "size 7x5")
     _one(problems, str(paths.ids), "uint16")
+
+
+def test_rgb_is_stored_as_opaque_rgba_and_read_back_as_rgb(tmp_path):
+    import imageio.v3 as iio
+
+    rgb = np.random.default_rng(0).integers(0, 256, (6, 9, 3), dtype=np.uint8)
+    D.write_rgb(tmp_path / "f.png", rgb)
+    stored = iio.imread(tmp_path / "f.png")
+    assert stored.shape == (6, 9, 4) and np.all(stored[..., 3] == 255) and np.array_equal(stored[..., :3], rgb)
+    assert np.array_equal(D.read_rgb(tmp_path / "f.png"), rgb)
+
+
+def test_validator_rgb_without_alpha_or_transparent(ds):
+    import imageio.v3 as iio
+
+    root, scene = ds
+    a, b = (D.frame_paths(root, f.name).rgb for f in scene.train_frames[:2])
+    iio.imwrite(a, np.zeros((scene.height, scene.width, 3), np.uint8))
+    rgba = np.full((scene.height, scene.width, 4), 255, np.uint8)
+    rgba[0, :3, 3] = 0
+    iio.imwrite(b, rgba)
+    problems = D.validate(root)
+    _one(problems, str(a), "without alpha")
+    _one(problems, str(b), "3 pixels have alpha below 255")
+    assert len(problems) == 2
 
 
 def test_validator_ids_out_of_range(ds):
@@ -185,7 +211,7 @@ def test_manifest_fields_of_the_wrong_type_are_named(ds, mutate):
 
 
 def test_dataset_module_imports_neither_bpy_nor_torch():
-    code = "import sys, scenecore.dataset, scenecore.cameras, scenecore.validity; print('bpy' in sys.modules, 'torch' in sys.modules)"
+    code = "import sys, scenecore.dataset, scenecore.atomic, scenecore.export_format, scenecore.cameras, scenecore.validity; print('bpy' in sys.modules, 'torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False False"
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from osn.evaluate.evaluation import Layer, composite_layers, masked_mse_matrix, nearest_level, relative_scale_errors, scale_levels
+from osn.evaluate.bestofn import EvalConfig, relative_scale_errors
+from osn.evaluate.layered import Layer, composite_layers, masked_mse_matrix, nearest_level, scale_levels
 
 
 def test_masked_mse_matrix_equals_brute_force():
@@ -69,3 +70,17 @@ def test_relative_scale_errors_skip_the_anchor_and_index_truth_by_object_id():
     err = relative_scale_errors(actual, true, ids=[0, 2, 3], anchor_id=2)
     assert err == pytest.approx([(0.0 + 0.2) / 2, 0.0])
     assert relative_scale_errors(actual[:, :1], true, ids=[0], anchor_id=0) == []
+
+
+@pytest.mark.parametrize("field, value, phrase", [
+    ("max_views", -1, "max_views must be an integer >= 0, got -1"),
+    ("levels", 1, "levels must be an integer >= 2, got 1"),
+    ("topk", 0, "topk must be an integer >= 1, got 0"),
+    ("lpips", "yes", "lpips must be true or false"),
+    ("grid", 1.5, "grid must be an integer >= 2"),
+    ("seed", -3, "seed must be an integer >= 0"),
+])
+def test_eval_config_rejects_bad_values(field, value, phrase):
+    with pytest.raises(ValueError, match=f"evaluate config: {phrase}"):
+        EvalConfig(**{field: value})
+    EvalConfig(max_views=0, levels=2, topk=1, lpips=False, grid=2)  # the smallest accepted values

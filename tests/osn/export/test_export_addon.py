@@ -243,7 +243,7 @@ def _torch_validity(scene, sbar: list[float]) -> float:
 
 
 def test_scale_net_numpy_matches_torch(exported) -> None:
-    from osn.export.writer import scale_net_numpy
+    from scenecore.export_format import scale_net_numpy
 
     scene, _, _ = exported
     s = np.random.default_rng(0).random((257, 2))
@@ -474,7 +474,8 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
     from scenecore.cameras import invert_pose, scale_about
     from osn.cli import main
     from osn.model.fields import FieldConfig, make_field
-    from osn.preprocess.inputs import oracle_inputs, save_inputs
+    from osn.preprocess.inputs import save_inputs
+    from osn.preprocess.oracle import oracle_inputs
     from osn.model.scale_net import ScaleNet
     from tests.synthetic import write_synthetic_dataset
 
@@ -497,8 +498,9 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
     cfg = {"field": vars(fcfg), "scale_width": 16, "scale_layers": 2, "valid_threshold": 0.6}
     torch.save({"config": cfg, "resolutions": [12] * len(fields), "fields": [f.state_dict() for f in fields],
                 "net": net.state_dict(), "iteration": 7}, run / "checkpoint.pt")
-    (run / "run.json").write_text(json.dumps({"dataset": str(tmp_path / "data")}))
-    assert main(["export", str(run), "--out", str(tmp_path / "export"), "--samples", "6", "--seed", "1"]) == 0
+    (run / "run.json").write_text(json.dumps({"dataset": str(tmp_path / "data")}))  # as `osn train` writes; not read
+    assert main(["export", str(run), "--out", str(tmp_path / "export"), "--data", str(tmp_path / "data"),
+                 "--samples", "6", "--seed", "1"]) == 0
 
     data = core.read_export(str(tmp_path / "export"))
     assert len(data.objects) == len(inputs.objects) and data.samples.shape == (6, len(inputs.objects))
@@ -522,13 +524,17 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
 
     # With `osn sample` output in the run, a plain export carries exactly those (evaluated)
     # configurations; an explicit --samples still draws that many new ones.
-    from osn.evaluate.evaluation import Samples
+    from osn.sample.configurations import Samples
 
     sbar = np.ones((3, len(inputs.objects)))
     sbar[:, data.free_indices] = 1.1
     Samples(np.zeros((3, len(inputs.objects) - 1)), sbar, np.ones(3), 0.5, 0).save(run / "samples.npz")
     assert main(["export", str(run), "--out", str(tmp_path / "e2")]) == 0
     np.testing.assert_allclose(core.read_export(str(tmp_path / "e2")).samples, sbar)
+    # Test cameras come only from the dataset named by --data (a dataset that is not there is an error).
+    assert core.read_export(str(tmp_path / "e2")).test_cameras is None
+    assert main(["export", str(run), "--out", str(tmp_path / "e5"), "--data", str(tmp_path / "nowhere")]) == 2
+    assert not (tmp_path / "e5").exists()
     assert main(["export", str(run), "--out", str(tmp_path / "e3"), "--samples", "4"]) == 0
     assert core.read_export(str(tmp_path / "e3")).samples.shape == (4, len(inputs.objects))
     assert main(["export", str(run), "--out", str(tmp_path / "e4"), "--samples", "-1"]) == 2

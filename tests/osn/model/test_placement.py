@@ -2,7 +2,7 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore.cameras import invert_pose
-from osn.preprocess import inputs as I
+from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from tests.synthetic import write_synthetic_dataset
 from osn.evaluate.units import true_scales
@@ -12,7 +12,7 @@ def test_test_camera_points_land_in_the_right_object_coordinates(tmp_path):
     root = tmp_path / "ds"
     write_synthetic_dataset(root, T=3, V=3, K=3)
     scene = D.load_scene(root)
-    inp = I.oracle_inputs(root, I.OracleConfig(points_per_frame=30, min_pixels=1))
+    inp = oracle_inputs(root, OracleConfig(points_per_frame=30, min_pixels=1))
     rng = np.random.default_rng(0)
     train_c2w = {f.time_index: f.camera_to_world for f in scene.train_frames}
     mu = np.array([o.unit_to_world for o in inp.objects])

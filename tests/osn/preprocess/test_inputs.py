@@ -4,6 +4,7 @@ import pytest
 from scenecore import dataset as D
 from scenecore.cameras import invert_pose, pixel_rays
 from osn.preprocess import inputs as I
+from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from tests.synthetic import write_synthetic_dataset
 from osn.evaluate.units import actual_scales, true_scales
 
@@ -12,7 +13,7 @@ from osn.evaluate.units import actual_scales, true_scales
 def oracle(tmp_path):
     root = tmp_path / "ds"
     write_synthetic_dataset(root, T=4, V=2, K=3)
-    return root, D.load_scene(root), I.oracle_inputs(root, I.OracleConfig(points_per_frame=40, min_pixels=1))
+    return root, D.load_scene(root), oracle_inputs(root, OracleConfig(points_per_frame=40, min_pixels=1))
 
 
 def test_oracle_poses_are_consistent_with_world_motion(oracle):
@@ -100,6 +101,21 @@ def test_malformed_object_inputs_are_named(oracle):
             I.check_inputs(dataclasses.replace(inp, objects=objects), "x")
 
 
+@pytest.mark.parametrize("field, value, phrase", [
+    ("points_per_frame", 0, "points_per_frame must be an integer >= 1, got 0"),
+    ("min_pixels", 2.5, "min_pixels must be an integer >= 1"),
+    ("scene_near_factor", 1.0, r"scene_near_factor must be a number in \(0, 1\)"),
+    ("scene_far_factor", 0.9, "scene_far_factor must be a number >= 1"),
+    ("box_padding", -0.1, "box_padding must be a number >= 0"),
+    ("seed", -1, "seed must be an integer >= 0"),
+])
+def test_oracle_config_rejects_bad_values(field, value, phrase):
+    """Each bad option is one error naming the section, the key and the rule (the scene volume's
+    factors as :func:`osn.preprocess.inputs.scene_volume` requires: 0 < near < 1 <= far)."""
+    with pytest.raises(ValueError, match=f"oracle config: {phrase}"):
+        OracleConfig(**{field: value})
+
+
 def test_inverted_range_is_an_error():
     with pytest.raises(I.InputsError, match="empty scale range"):
         I.scale_range(1.0, 2.0, 0.5, 3.0)
@@ -128,7 +144,7 @@ def test_save_load_round_trip(oracle, tmp_path):
 def test_ignored_pixels_are_never_drawn_for_training(oracle):
     import torch
 
-    from osn.train.loop import SceneTensors
+    from osn.train.tensors import SceneTensors
 
     root, scene, inp = oracle
     inp.masks[inp.masks == 2] = I.IGNORE_ID  # as preprocessing does for a dropped object
@@ -138,7 +154,7 @@ def test_ignored_pixels_are_never_drawn_for_training(oracle):
     assert len(st.usable) == int((flat_masks != I.IGNORE_ID).sum())
     assert len(st.obj_pixels[2]) == 0  # and no object claims them
     # Nor are they scored: training PSNR is measured on trainable pixels only.
-    from osn.train.loop import Evaluator, TrainConfig, Trainer
+    from osn.train import TrainConfig, Trainer, TrainingMonitor
 
-    ev = Evaluator(Trainer(inp, TrainConfig(eval_pixels=10**6), torch.device("cpu")), None)
+    ev = TrainingMonitor(Trainer(inp, TrainConfig(eval_pixels=10**6), torch.device("cpu")), None)
     assert len(ev.flat) == len(st.usable) and not torch.any(flat_masks[ev.flat] == I.IGNORE_ID)

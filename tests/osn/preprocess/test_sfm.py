@@ -11,8 +11,11 @@ import pytest
 
 from benchgen.render.generate import generate
 from benchgen.scene.spec import load_preset, spec_from_dict
-from osn.preprocess import sfm as P
-from osn.preprocess.inputs import load_inputs
+from osn.preprocess import alignment
+from osn.preprocess.inputs import IGNORE_ID, InputsError, load_inputs
+from osn.preprocess.oracle import OracleConfig, oracle_inputs
+from osn.preprocess.sfm import LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, principal_grey, reconstruct_object
+from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
 from osn.evaluate.units import ground_truth_problem
 
 pytestmark = pytest.mark.slow
@@ -31,8 +34,8 @@ def sfm_scene(tmp_path_factory) -> Path:
 
 
 def test_registration_matches_ground_truth(sfm_scene, tmp_path):
-    cfg = P.PreprocessConfig(on_failure="skip")
-    inputs, report = P.preprocess_dataset(sfm_scene, cfg)
+    cfg = PreprocessConfig(on_failure="skip")
+    inputs, report = preprocess_dataset(sfm_scene, cfg)
     assert inputs.source == "colmap"
     by_id = {r["id"]: r for r in report.objects}
     # The textured room (anchor): every frame, sub-degree rotations, centimetre centres.
@@ -70,7 +73,6 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     # come from: camera-centre distances between frames, in metres, match ground truth. (The
     # similarity's scale, biased low by noisy centres, made the block's unit 0.41 of the truth
     # and the valid-set IoU of SfM training 0.08 instead of 0.68.)
-    from osn.preprocess.inputs import OracleConfig, oracle_inputs
 
     oracle = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
     for o in inputs.objects:
@@ -82,7 +84,7 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         assert (0.98 < ratio < 1.02) if o.id == 0 else (0.8 < ratio < 1.25), (o.name, ratio)
         assert 0 < by_id[o.id]["similarity_unit_ratio"] < 2
     # Deterministic: a second run gives the same poses.
-    again, _ = P.preprocess_dataset(sfm_scene, cfg)
+    again, _ = preprocess_dataset(sfm_scene, cfg)
     for a, b in zip(inputs.objects, again.objects):
         assert np.array_equal(a.frames, b.frames) and np.allclose(a.cam_to_obj, b.cam_to_obj, atol=1e-9)
 
@@ -121,22 +123,22 @@ def test_failure_names_object_counts_and_remedy(sfm_scene):
     masks = np.stack([D.read_frame(sfm_scene, f.name)[2] for f in frames])
     K = scene.intrinsics.matrix()
     # Only two frames: object 1 cannot register.
-    with pytest.raises(P.ObjectRegistrationError, match=r"object 1 \(ball\): visible in 2 frame\(s\).*needs >= 3.*more frames"):
-        P.reconstruct_object(images[:2], masks[:2], 1, K, P.PreprocessConfig(), "ball")
+    with pytest.raises(ObjectRegistrationError, match=r"object 1 \(ball\): visible in 2 frame\(s\).*needs >= 3.*more frames"):
+        reconstruct_object(images[:2], masks[:2], 1, K, PreprocessConfig(), "ball")
     # A textureless object (flat grey): no features inside its mask -> the message says so.
     flat = images.copy()
     flat[masks == 1] = 128
-    with pytest.raises(P.ObjectRegistrationError, match=r"object 1 \(ball\).*features.*texture"):
-        P.reconstruct_object(flat, masks, 1, K, P.PreprocessConfig(), "ball")
+    with pytest.raises(ObjectRegistrationError, match=r"object 1 \(ball\).*features.*texture"):
+        reconstruct_object(flat, masks, 1, K, PreprocessConfig(), "ball")
     # With on_failure=skip the scene is preprocessed without it and its pixels are ignored.
-    inputs, report = P.preprocess_video(flat, masks, K, np.linspace(0, 1, len(frames)), {0: "room", 1: "ball", 2: "block"}, 0,
-                                        P.PreprocessConfig(on_failure="skip"))
+    inputs, report = preprocess_video(flat, masks, K, np.linspace(0, 1, len(frames)), {0: "room", 1: "ball", 2: "block"}, 0,
+                                        PreprocessConfig(on_failure="skip"))
     assert 1 in report.dropped and 0 not in report.dropped
     assert [o.id for o in inputs.objects] == [k for k in (0, 1, 2) if k not in report.dropped]
-    assert not np.any(inputs.masks == 1) and np.any(inputs.masks == P.IGNORE_ID)
+    assert not np.any(inputs.masks == 1) and np.any(inputs.masks == IGNORE_ID)
     # The anchor cannot be dropped: without it there is no scene frame.
-    with pytest.raises(P.ObjectRegistrationError, match="object 0"):
-        P.preprocess_video(images[:2], masks[:2], K, np.linspace(0, 1, 2), {0: "room"}, 0, P.PreprocessConfig(on_failure="skip"))
+    with pytest.raises(ObjectRegistrationError, match="object 0"):
+        preprocess_video(images[:2], masks[:2], K, np.linspace(0, 1, 2), {0: "room"}, 0, PreprocessConfig(on_failure="skip"))
 
 
 def test_cli_failure_is_one_line(tmp_path):
@@ -157,15 +159,15 @@ def test_video_folder_input_problems_are_named(tmp_path):
     for t in range(3):
         iio.imwrite(frames / f"{t}.jpg", (rng.random((16, 20)) * 255).astype(np.uint8))
         iio.imwrite(masks / f"{t}.png", np.full((16, 20), 255, np.uint8))
-    with pytest.raises(P.InputsError, match=f"{masks}: the masks hold no object id"):
-        P.load_video(frames, masks)
+    with pytest.raises(InputsError, match=f"{masks}: the masks hold no object id"):
+        load_video(frames, masks)
     iio.imwrite(masks / "1.png", np.zeros((16, 20), np.uint8))
-    images, ids, names = P.load_video(frames, masks)
+    images, ids, names = load_video(frames, masks)
     assert images.shape == (3, 16, 20, 3) and names == ["0.jpg", "1.jpg", "2.jpg"]
-    with pytest.raises(P.InputsError, match="positive focal lengths"):
-        P.intrinsics_from_args("0,0,8,8", None, 20, 16)
-    with pytest.raises(P.InputsError, match="between 0 and 180"):
-        P.intrinsics_from_args(None, 180.0, 20, 16)
+    with pytest.raises(InputsError, match="positive focal lengths"):
+        intrinsics_from_args("0,0,8,8", None, 20, 16)
+    with pytest.raises(InputsError, match="between 0 and 180"):
+        intrinsics_from_args(None, 180.0, 20, 16)
     r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks),
                         "--intrinsics=-5,5,8,8", "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert r.returncode == 2 and "positive focal lengths" in r.stderr and "Traceback" not in r.stderr
@@ -179,58 +181,57 @@ def test_principal_grey_keeps_texture_that_luminance_loses():
     red, blue = np.array([200.0, 40.0, 60.0]), np.array([0.0, 0.0, 0.0])
     # The blue whose luminance equals the red's: solve LUMA . blue = LUMA . red with B free.
     blue[2] = 230.0
-    blue[1] = (P.LUMA @ red - P.LUMA[2] * blue[2]) / P.LUMA[1]
+    blue[1] = (LUMA @ red - LUMA[2] * blue[2]) / LUMA[1]
     images = np.where(pattern[..., None], red, blue).astype(np.uint8)
     masks = np.ones(pattern.shape, dtype=bool)
-    assert np.ptp(images.astype(float) @ P.LUMA) < 1.0  # luminance sees nothing
-    grey = P.principal_grey(images, masks, "auto")
+    assert np.ptp(images.astype(float) @ LUMA) < 1.0  # luminance sees nothing
+    grey = principal_grey(images, masks, "auto")
     assert grey is not None and grey.shape == pattern.shape and grey.dtype == np.uint8
     # One mapping for every frame: each colour gets one grey level, and the full range is used.
     assert set(np.unique(grey[pattern])) == {255} and set(np.unique(grey[~pattern])) == {0}
     # A light/dark pattern keeps luminance under auto (None), but principal mode still projects.
     dark = np.where(pattern[..., None], [220, 210, 200], [40, 30, 30]).astype(np.uint8)
-    assert P.principal_grey(dark, masks, "auto") is None
-    assert np.array_equal(P.principal_grey(dark, masks, "principal") > 127, pattern)
+    assert principal_grey(dark, masks, "auto") is None
+    assert np.array_equal(principal_grey(dark, masks, "principal") > 127, pattern)
     # Pixels outside the mask do not choose the axis.
     noisy = images.copy()
     noisy[:, :4] = rng.integers(0, 256, (3, 4, 24, 3))
     inner = masks.copy()
     inner[:, :4] = False
-    g = P.principal_grey(noisy, inner, "principal")
+    g = principal_grey(noisy, inner, "principal")
     assert set(np.unique(g[inner & pattern])) == {255} and set(np.unique(g[inner & ~pattern])) == {0}
 
 
 def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="grey"):
-        P.PreprocessConfig(grey="green")
+        PreprocessConfig(grey="green")
     with pytest.raises(ValueError, match="upscale"):
-        P.PreprocessConfig(upscale=0)
+        PreprocessConfig(upscale=0)
     with pytest.raises(ValueError, match="epipolar_error"):
-        P.PreprocessConfig(epipolar_error=float("nan"))
+        PreprocessConfig(epipolar_error=float("nan"))
     with pytest.raises(ValueError, match="final_cauchy_px"):
-        P.PreprocessConfig(final_cauchy_px=float("inf"))
+        PreprocessConfig(final_cauchy_px=float("inf"))
     with pytest.raises(ValueError, match="min_epipolar_consistency"):
-        P.PreprocessConfig(min_epipolar_consistency=1.0)
+        PreprocessConfig(min_epipolar_consistency=1.0)
 
 
 def test_isoluminant_object_registers_on_its_colour_axis(sfm_scene):
     """The ball repainted so that its texture lives in hue only: luminance SIFT finds nothing,
     the principal colour axis (``grey="auto"``) registers it against ground truth."""
     from scenecore.cameras import fit_pose_similarity, rotation_angle_deg
-    from osn.preprocess.inputs import OracleConfig, oracle_inputs
 
     orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
     ball = orc.masks == 1
     rgb = orc.images.astype(np.float64)
-    luma = rgb @ P.LUMA
-    hue_axis = np.array([1.0, -P.LUMA[0] / P.LUMA[1], 0.0])  # zero luminance
+    luma = rgb @ LUMA
+    hue_axis = np.array([1.0, -LUMA[0] / LUMA[1], 0.0])  # zero luminance
     iso = rgb.copy()
     iso[ball] = 128.0 + 3.0 * (luma[ball] - luma[ball].mean())[:, None] * hue_axis
     iso = np.clip(np.rint(iso), 0, 255).astype(np.uint8)
-    assert np.std(iso[ball].astype(float) @ P.LUMA) < 1.0
-    with pytest.raises(P.ObjectRegistrationError, match="features"):
-        P.reconstruct_object(iso, orc.masks, 1, orc.K, P.PreprocessConfig(grey="luminance"), "ball")
-    sfm = P.reconstruct_object(iso, orc.masks, 1, orc.K, P.PreprocessConfig(grey="auto"), "ball")
+    assert np.std(iso[ball].astype(float) @ LUMA) < 1.0
+    with pytest.raises(ObjectRegistrationError, match="features"):
+        reconstruct_object(iso, orc.masks, 1, orc.K, PreprocessConfig(grey="luminance"), "ball")
+    sfm = reconstruct_object(iso, orc.masks, 1, orc.K, PreprocessConfig(grey="auto"), "ball")
     assert len(sfm.frames) >= 6
     gt = orc.object(1)
     poses = gt.cam_to_obj[[gt.frame_slot(int(t)) for t in sfm.frames]]
@@ -247,7 +248,6 @@ def test_alignment_fallbacks_keep_the_unit_and_say_what_failed(tiny_dataset, mon
     import copy
 
     from scenecore import dataset as D
-    from osn.preprocess.inputs import OracleConfig, oracle_inputs
 
     oracle = oracle_inputs(tiny_dataset, OracleConfig(min_pixels=1, points_per_frame=1))
     scene = D.load_scene(tiny_dataset)
@@ -256,19 +256,36 @@ def test_alignment_fallbacks_keep_the_unit_and_say_what_failed(tiny_dataset, mon
     sfm = copy.deepcopy(oracle)
     for o in sfm.objects:
         o.unit_to_world = None
-    report = P.PreprocessReport(objects=[{"id": o.id, "name": o.name} for o in sfm.objects])
+    report = PreprocessReport(objects=[{"id": o.id, "name": o.name} for o in sfm.objects])
 
     def refuse(src, dst):
         raise ValueError("fit_pose_similarity: camera centres give a negative scale (poses disagree)")
 
-    monkeypatch.setattr(P, "fit_pose_similarity", refuse)
-    P.align_to_ground_truth(sfm, oracle, report, scene, depths)
+    monkeypatch.setattr(alignment, "fit_pose_similarity", refuse)
+    alignment.align_to_ground_truth(sfm, report, scene, depths, oracle.masks)
     for o, g, rep in zip(sfm.objects, oracle.objects, report.objects):
         assert o.unit_to_world == pytest.approx(g.unit_to_world, rel=1e-6)
         assert rep["alignment"].startswith("not measurable: fit_pose_similarity: camera centres give a negative scale")
     assert sfm.world_to_anchor is None
     assert report.objects[0]["test_view_alignment"].startswith("failed:")
     assert "no world-to-anchor alignment" in ground_truth_problem(sfm)
+
+
+def test_exact_poses_align_to_ground_truth_without_error(tiny_dataset):
+    """Ground truth for the accuracy figures comes from the dataset's poses (metres, each object's
+    body frame), not from oracle inputs: the oracle's own poses, in their own frame and unit,
+    align onto it with no error, a similarity scale equal to their unit, and every visible frame."""
+    from scenecore import dataset as D
+
+    oracle = oracle_inputs(tiny_dataset, OracleConfig(min_pixels=1, points_per_frame=1))
+    scene = D.load_scene(tiny_dataset)
+    for o in oracle.objects:
+        frames, poses = alignment.true_camera_poses(scene, oracle.masks, o.id)
+        assert np.array_equal(frames, o.frames) and poses.shape == (len(frames), 4, 4)
+        acc = alignment.pose_accuracy(o, frames, poses)
+        assert acc["rotation_error_deg_max"] < 1e-4 and acc["center_error_m_max"] < 1e-9, acc
+        assert acc["similarity_unit_ratio"] == pytest.approx(1.0, rel=1e-9)
+        assert acc["gt_visible_frames"] == len(frames) and acc["registered_fraction"] == 1.0
 
 
 def test_a_frame_posed_against_its_own_matches_is_reposed_or_dropped(sfm_scene, tmp_path):
@@ -278,13 +295,12 @@ def test_a_frame_posed_against_its_own_matches_is_reposed_or_dropped(sfm_scene, 
     import pycolmap
 
     from scenecore.cameras import rotation_angle_deg
-    from osn.preprocess.inputs import OracleConfig, oracle_inputs
     from osn.preprocess.repair import repair_registrations
 
     orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
-    cfg = P.PreprocessConfig()
+    cfg = PreprocessConfig()
     work = tmp_path / "room"
-    sfm = P.reconstruct_object(orc.images, orc.masks, 0, orc.K, cfg, "room", work_dir=work)
+    sfm = reconstruct_object(orc.images, orc.masks, 0, orc.K, cfg, "room", work_dir=work)
     assert sfm.repaired_frames == [] and (work / "database.db").exists()
     u = cfg.upscale
     args = (work / "database.db", np.diag([u, u, 1.0]) @ orc.K, 2 * cfg.epipolar_error * u, cfg.min_epipolar_consistency)
@@ -323,8 +339,8 @@ def test_final_robust_bundle_adjustment_lowers_rotation_errors(sfm_scene):
     """The last global BA with a Cauchy loss (1 px) lowers every object's mean rotation error
     (on gnome-house too: all 12 objects x resolutions 128-512 px; docs/preprocess.md)."""
     means = {}
-    for c in (0.0, P.PreprocessConfig.final_cauchy_px):
-        _, rep = P.preprocess_dataset(sfm_scene, P.PreprocessConfig(on_failure="skip", final_cauchy_px=c))
+    for c in (0.0, PreprocessConfig.final_cauchy_px):
+        _, rep = preprocess_dataset(sfm_scene, PreprocessConfig(on_failure="skip", final_cauchy_px=c))
         means[c] = {r["name"]: r["rotation_error_deg_mean"] for r in rep.objects if "error" not in r}
     plain, robust = means.values()
     assert plain.keys() == robust.keys() and len(plain) == 3
@@ -338,7 +354,7 @@ def test_report_lines_name_dropped_objects_and_repaired_frames():
              {"frame": "00014", "action": "re-posed", "consistency": 0.0155, "consistency_after": 0.590}]},
         {"id": 3, "name": "ring-toy", "error": "object 3 (ring-toy): registered 2 of 15 frames"},
     ]
-    assert P.report_lines(objects) == [
+    assert report_lines(objects) == [
         "  object 0 (room): 15/15 frames, 16559 points, reprojection error 0.35 px",
         "    frame 00014: re-posed (1.6% of its verified matches fit SfM's pose, 59.0% after)",
         "  object 3 (ring-toy): DROPPED: object 3 (ring-toy): registered 2 of 15 frames",

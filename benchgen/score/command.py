@@ -1,0 +1,69 @@
+"""``benchgen score PRED --data DATASET``: the benchmark's scorer for any method's renders."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import time
+from pathlib import Path
+
+from scenecore.cli import UserError, subcommand
+
+DESCRIPTION = (
+    "Score a method's candidate solutions (docs/predictions.md: PRED/CAND/rgb/NAME.png per test view, optional "
+    "depth/NAME.exr and ids/NAME.png) against every ground-truth configuration of DATASET: each ground truth is "
+    "matched to the candidate with the best mean PSNR over its co-visible test pixels (exact, over all candidates), "
+    "then PSNR, SSIM, LPIPS (SSIMAE when every candidate has depth, PQ and mIoU when every candidate has ids) of the "
+    "matches are reported as mean and std over the ground truths. Writes report.md, metrics.json, psnr_matrix.npy "
+    "and PNG plots. Every prediction file is checked before anything is written; a bad one is named on one line "
+    "with exit code 2."
+)
+
+
+def add_score_command(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``score`` on ``benchgen``'s sub-parsers."""
+    p = subcommand(sub, "score", _cmd_score, "score any method's renders: best of N against every ground truth", DESCRIPTION)
+    p.add_argument("predictions", metavar="PRED", help="prediction directory: one sub-directory per candidate (docs/predictions.md)")
+    p.add_argument("--data", required=True, metavar="DATASET", help="dataset directory written by 'benchgen generate'")
+    p.add_argument("--out", default=None, metavar="DIR", help="output directory; when not given, PRED-score beside PRED")
+    p.add_argument("--max-views", type=int, default=0, metavar="K",
+                   help="score at most K test views, evenly spread as in 'osn evaluate' (0 = all; candidates need only these)")
+    p.add_argument("--no-lpips", action="store_true", help="skip LPIPS (it needs the weights installed by 'make setup')")
+    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes reading and scoring candidates (same result for any N)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def _command(args: argparse.Namespace, out: Path) -> str:
+    parts = ["benchgen", "score", args.predictions, "--data", args.data, "--out", str(out)]
+    parts += ["--max-views", str(args.max_views)] * bool(args.max_views) + ["--no-lpips"] * args.no_lpips
+    return shlex.join(parts + ["--workers", str(args.workers)])
+
+
+def _cmd_score(args: argparse.Namespace) -> int:
+    from scenecore import dataset as D
+    from benchgen.score.predictions import PredictionDir
+    from benchgen.score.report import results_table, write_report
+    from benchgen.score.scorer import score
+    from benchgen.score.truth import evaluated_views, load_truth
+
+    if args.workers < 1 or args.max_views < 0:
+        raise UserError(f"--workers must be >= 1 and --max-views >= 0, got {args.workers} and {args.max_views}")
+    data, pred = Path(args.data), Path(args.predictions)
+    if not data.is_dir():
+        raise UserError(f"{data}: not a directory (expected a dataset written by 'benchgen generate')")
+    out = Path(args.out) if args.out else pred.resolve().parent / f"{pred.resolve().name}-score"
+    scene = D.load_scene(data)
+    # The structure of every candidate is checked before the ground truth is read (it is cheap).
+    source = PredictionDir(pred, scene, [f.name for f in evaluated_views(scene, args.max_views)])
+    t0 = time.perf_counter()
+    truth = load_truth(data, args.max_views, args.workers, progress=not args.quiet)
+    t_truth = time.perf_counter() - t0
+    res = score(truth, source, with_lpips=not args.no_lpips, workers=args.workers, progress=not args.quiet)
+    res.timings = {"ground_truth_s": t_truth, **res.timings}
+    report = write_report(res, out, source.method, _command(args, out), str(data), str(pred))
+    label = f"{source.method.get('name', 'candidates')}: best of {len(source)}"
+    print(results_table(res.summary, label))
+    print(f"{len(source)} candidates x {truth.num_configurations} ground truths x {truth.num_views} views in "
+          f"{res.timings['total_s']:.1f} s; report: {report}")
+    return 0

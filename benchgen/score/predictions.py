@@ -1,0 +1,239 @@
+"""The prediction format of ``benchgen score`` (docs/predictions.md): its one owner.
+
+A prediction directory ``PRED`` holds one sub-directory per candidate solution; each mirrors a
+configuration directory of the dataset::
+
+    PRED/
+      method.json                 optional: {"name": ..., "notes": ...}, copied into the report
+      CAND/rgb/NAME.png           every evaluated test frame NAME: 8- or 16-bit RGB or RGBA
+      CAND/depth/NAME.exr         optional: planar depth (for SSIMAE), every candidate or none
+      CAND/ids/NAME.png           optional: instance ids (for PQ / mIoU), every candidate or none
+
+so a dataset's ``configs/GGG`` is itself a valid candidate. Candidates are taken in sorted name
+order; directories starting with ``.`` are skipped. The same checks apply to candidates given as
+in-memory arrays (:class:`MemorySource`, for renderers such as ``osn evaluate``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+import numpy as np
+
+from scenecore import dataset as D
+from benchgen.score.pngread import PngError, decode_ids, decode_rgb
+
+METHOD_FILE = "method.json"
+KINDS = ("rgb", "depth", "ids")
+SUFFIX = {"rgb": ".png", "depth": ".exr", "ids": ".png"}
+
+
+class PredictionError(ValueError):
+    """A prediction is missing or malformed; the message names the file and the problem."""
+
+
+@dataclass
+class Candidate:
+    """One candidate solution on the evaluated views (in the order of the ground truth's frames).
+
+    ``rgb`` ``(V, H, W, 3)``: uint8, uint16 (full 16-bit range) or float in [0, 1];
+    ``depth`` ``(V, H, W)`` float planar depth (``+inf`` = nothing hit) or None;
+    ``ids`` ``(V, H, W)`` uint8 instance ids (255 = no object) or None.
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray | None = None
+    ids: np.ndarray | None = None
+
+
+class CandidateSource(Protocol):
+    """N candidates, loaded one at a time by index (so that memory does not grow with N)."""
+
+    names: list[str]
+    has_depth: bool
+    has_ids: bool
+
+    def load(self, index: int) -> Candidate:
+        """Candidate ``index``, checked (raises :class:`PredictionError` naming what is wrong)."""
+        ...
+
+
+# --------------------------------------------------------------------------------------------
+# Checks shared by files and arrays
+# --------------------------------------------------------------------------------------------
+
+
+def rgb_problem(where: str | Path, rgb: np.ndarray, scene: D.Scene) -> str | None:
+    """One line naming ``where`` when one view's colour ``(H, W, 3)`` is malformed (else None)."""
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        return f"{where}: expected an (H, W, 3) RGB image, got shape {rgb.shape}"
+    if p := D.size_problem(Path(where), rgb.shape[:2], scene):
+        return p
+    if rgb.dtype in (np.uint8, np.uint16):
+        return None
+    if not np.issubdtype(rgb.dtype, np.floating):
+        return f"{where}: colour must be uint8, uint16 or float, got {rgb.dtype}"
+    bad = int((~np.isfinite(rgb)).sum())
+    return f"{where}: {bad} non-finite colour values" if bad else None
+
+
+def depth_problem(where: str | Path, depth: np.ndarray, scene: D.Scene) -> str | None:
+    """One line naming ``where`` when one view's planar depth ``(H, W)`` is malformed: not float,
+    wrong size, NaN or -inf (``+inf`` marks pixels where nothing is hit, as in the dataset)."""
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
+        return f"{where}: expected an (H, W) float depth map, got {depth.shape} {depth.dtype}"
+    if p := D.size_problem(Path(where), depth.shape, scene):
+        return p
+    nan, neg = int(np.isnan(depth).sum()), int(np.isneginf(depth).sum())
+    if nan or neg:
+        return f"{where}: {nan} NaN and {neg} -inf depths (+inf marks pixels where nothing is hit)"
+    return None
+
+
+def ids_problem(where: str | Path, ids: np.ndarray, scene: D.Scene) -> str | None:
+    """One line naming ``where`` when one view's instance ids ``(H, W)`` uint8 are malformed:
+    wrong dtype or size, or ids naming no object of the scene."""
+    if ids.ndim != 2 or ids.dtype != np.uint8:
+        return f"{where}: instance ids must be an (H, W) uint8 map, got {ids.shape} {ids.dtype}"
+    return D.size_problem(Path(where), ids.shape, scene) or D.ids_problem(Path(where), ids, scene.num_objects)
+
+
+PROBLEMS: dict[str, Callable[[str | Path, np.ndarray, D.Scene], str | None]] = {
+    "rgb": rgb_problem, "depth": depth_problem, "ids": ids_problem}
+
+
+def check_candidate(c: Candidate, name: str, scene: D.Scene, num_views: int, has_depth: bool, has_ids: bool) -> None:
+    """Raise :class:`PredictionError` ``"NAME KIND view v: problem"`` for a malformed in-memory candidate."""
+    kinds = ["rgb"] + ["depth"] * has_depth + ["ids"] * has_ids
+    for kind in kinds:
+        arr = getattr(c, kind)
+        if arr is None or len(arr) != num_views:
+            raise PredictionError(f"{name}: {kind} holds {0 if arr is None else len(arr)} views, expected {num_views}")
+        for v in range(num_views):
+            if p := PROBLEMS[kind](f"{name} {kind} view {v}", np.asarray(arr[v]), scene):
+                raise PredictionError(p)
+
+
+# --------------------------------------------------------------------------------------------
+# Prediction directories
+# --------------------------------------------------------------------------------------------
+
+
+def read_method(pred: Path) -> dict:
+    """``PRED/method.json`` (an object; ``{}`` when absent)."""
+    path = pred / METHOD_FILE
+    if not path.exists():
+        return {}
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise PredictionError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(d, dict):
+        raise PredictionError(f"{path}: expected a JSON object such as {{\"name\": ..., \"notes\": ...}}")
+    return d
+
+
+def _files(folder: Path) -> set[str] | None:
+    """Names in ``folder`` (None when it is not a directory)."""
+    return set(os.listdir(folder)) if folder.is_dir() else None
+
+
+def _check_kind(cand: Path, kind: str, frames: Sequence[str], required: bool) -> bool:
+    """Whether candidate ``cand`` has ``kind``; raises naming the first missing view."""
+    present = _files(cand / kind)
+    if present is None:
+        if required:
+            raise PredictionError(f"{cand / kind}: missing directory (needs {kind}/NAME{SUFFIX[kind]} for every test view)")
+        return False
+    for name in frames:
+        if name + SUFFIX[kind] not in present:
+            raise PredictionError(f"{cand / kind / (name + SUFFIX[kind])}: missing view")
+    return True
+
+
+class PredictionDir:
+    """The candidates of a prediction directory, checked for structure when opened.
+
+    Opening lists every candidate's files (cheap): each must have ``rgb/NAME.png`` for every
+    evaluated frame, and depth / ids must be given by every candidate or by none. File contents
+    are checked by :meth:`load`, which raises :class:`PredictionError` naming the file.
+    """
+
+    def __init__(self, root: str | Path, scene: D.Scene, frames: Sequence[str]) -> None:
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise PredictionError(f"{self.root}: not a directory (expected one sub-directory per candidate)")
+        self.scene, self.frames = scene, list(frames)
+        self.method = read_method(self.root)
+        self.names = sorted(e.name for e in os.scandir(self.root) if e.is_dir() and not e.name.startswith("."))
+        if not self.names:
+            raise PredictionError(f"{self.root}: no candidate directories (expected CAND/rgb/NAME.png per test view)")
+        first = self.root / self.names[0]
+        self.has_depth = (first / "depth").is_dir()
+        self.has_ids = (first / "ids").is_dir()
+        for name in self.names:
+            self._check_layout(self.root / name, first)
+
+    def _check_layout(self, cand: Path, first: Path) -> None:
+        _check_kind(cand, "rgb", self.frames, required=True)
+        for kind, expected in (("depth", self.has_depth), ("ids", self.has_ids)):
+            if _check_kind(cand, kind, self.frames, required=False) != expected:
+                has, lacks = (cand, first) if not expected else (first, cand)
+                raise PredictionError(f"{lacks / kind}: missing, but {has / kind} exists "
+                                      f"({kind} must be given for every candidate or for none)")
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def path(self, index: int, kind: str, frame: str) -> Path:
+        return self.root / self.names[index] / kind / (frame + SUFFIX[kind])
+
+    def load(self, index: int) -> Candidate:
+        """Read and check candidate ``index``; :class:`PredictionError` names the bad file."""
+        rgb = np.stack([self._read(self.path(index, "rgb", f), "rgb") for f in self.frames])
+        depth = np.stack([self._read(self.path(index, "depth", f), "depth") for f in self.frames]) if self.has_depth else None
+        ids = np.stack([self._read(self.path(index, "ids", f), "ids") for f in self.frames]) if self.has_ids else None
+        return Candidate(rgb, depth, ids)
+
+    def _read(self, path: Path, kind: str) -> np.ndarray:
+        try:
+            if kind == "depth":
+                a = D.read_depth(path)
+            else:
+                a = (decode_rgb if kind == "rgb" else decode_ids)(path.read_bytes())
+        except PngError as e:
+            raise PredictionError(f"{path}: {e}") from None
+        except D.DatasetError as e:  # its message already names the file
+            raise PredictionError(str(e)) from None
+        except OSError as e:
+            raise PredictionError(f"{path}: cannot read ({e.strerror or e})") from None
+        if p := PROBLEMS[kind](path, a, self.scene):
+            raise PredictionError(p)
+        return a
+
+
+class MemorySource:
+    """Candidates produced in memory (e.g. rendered by a method), checked like files.
+
+    ``loader(n)`` returns candidate n as a :class:`Candidate` on the evaluated views; it may be
+    called twice for a candidate that matches a ground truth (the pass, then the full metrics).
+    """
+
+    def __init__(self, names: Sequence[str], loader: Callable[[int], Candidate], scene: D.Scene,
+                 num_views: int, has_depth: bool = False, has_ids: bool = False) -> None:
+        if not names:
+            raise PredictionError("no candidates to score")
+        self.names, self.loader, self.scene, self.num_views = list(names), loader, scene, num_views
+        self.has_depth, self.has_ids = has_depth, has_ids
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def load(self, index: int) -> Candidate:
+        c = self.loader(index)
+        check_candidate(c, self.names[index], self.scene, self.num_views, self.has_depth, self.has_ids)
+        return c

@@ -1,0 +1,142 @@
+"""The output of ``benchgen score``: ``metrics.json``, ``report.md``, PNG plots, ``psnr_matrix.npy``.
+
+Every file is written atomically, and only after the whole scoring succeeded.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from scenecore import dataset as D
+from benchgen.score.scorer import METRICS, ScoreResult
+
+FORMAT = "benchgen-score"
+VERSION = 1
+
+
+def _json_safe(x: Any) -> Any:
+    """NaN and infinities become null (JSON has neither); numpy scalars become Python numbers."""
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def metrics_json(res: ScoreResult, method: dict[str, Any], command: str, dataset: str, predictions: str) -> dict[str, Any]:
+    """The content of ``metrics.json`` (docs/predictions.md lists the fields)."""
+    return _json_safe({
+        "format": FORMAT, "version": VERSION, "command": command, "method": method,
+        "dataset": dataset, "predictions": predictions, **res.info,
+        "summary": res.summary, "per_ground_truth": res.per_ground_truth, "curves": res.curves,
+        "timings": res.timings, "candidates": res.names,
+    })
+
+
+def results_table(summary: dict[str, dict[str, float]], label: str) -> str:
+    """One-row markdown table: mean ± std over ground truths of every reported metric."""
+    cols = [m for m in METRICS if m[0] in summary]
+    cell = [f"{f.format(summary[k]['mean'])} ± {f.format(summary[k]['std'])}" for k, _, f in cols]
+    return "\n".join([f"| method | {' | '.join(c[1] for c in cols)} |", "|---|" + "---|" * len(cols), f"| {label} | {' | '.join(cell)} |"])
+
+
+def _save_fig(fig: Any, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    D.atomic_write_bytes(path, buf.getvalue())
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_best_of_n(curves: dict[str, Any], path: Path) -> None:
+    """Two panels from :func:`bestofn.curves`: best PSNR against the number of candidates n, and
+    each candidate's best PSNR against the number of ground truths m."""
+    plt = _pyplot()
+    fig, axs = plt.subplots(1, 2, figsize=(10, 3.5))
+    axs[0].semilogx(curves["best_psnr_vs_n"]["n"], curves["best_psnr_vs_n"]["psnr"], ".-")
+    axs[0].set(xlabel="first n candidates (directory order)", ylabel="best PSNR, mean over ground truths (dB)", title="best of n")
+    axs[1].plot(curves["psnr_vs_num_ground_truths"]["num_gt"], curves["psnr_vs_num_ground_truths"]["psnr"], ".-")
+    axs[1].set(xlabel="first m ground truths", ylabel="each candidate's best PSNR, mean (dB)",
+               title="candidates against more ground truths")
+    _save_fig(fig, path)
+    plt.close(fig)
+
+
+def plot_per_ground_truth(sorted_best: list[float], num_candidates: int, path: Path) -> None:
+    """Every ground truth's best PSNR, sorted: how evenly the candidates cover the ground truths."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.plot(np.arange(1, len(sorted_best) + 1), sorted_best, ".-")
+    ax.set(xlabel="ground truth (sorted)", ylabel=f"PSNR of its best of {num_candidates} (dB)", title="per ground truth")
+    _save_fig(fig, path)
+    plt.close(fig)
+
+
+def write_plots(res: ScoreResult, out: Path) -> list[str]:
+    """``best_of_n.png`` and ``per_ground_truth.png`` in ``out``; returns the file names."""
+    plot_best_of_n(res.curves, out / "best_of_n.png")
+    plot_per_ground_truth(res.curves["sorted_best_psnr"], len(res.names), out / "per_ground_truth.png")
+    return ["best_of_n.png", "per_ground_truth.png"]
+
+
+def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plots: list[str]) -> str:
+    """``report.md``: the results table, what was scored, timings, plots and the per-ground-truth matches."""
+    i, t = res.info, res.timings
+    name = str(method.get("name", "candidates"))
+    label = f"{name}: best of {i['num_candidates']}"
+    keys = [m for m in METRICS if m[0] in res.summary]
+    lines = ["# Benchmark score", "", f"Command: `{command}`", ""]
+    if method.get("notes"):
+        lines += [f"Method notes: {method['notes']}", ""]
+    lines += [
+        f"{i['num_candidates']} candidates against {i['num_ground_truths']} ground-truth configurations on "
+        f"{i['num_views']} test views each; {100 * i['covisible_fraction']:.1f}% of test pixels are co-visible with "
+        "the training video (the rest are masked out). Each ground truth is matched to the candidate with the best "
+        f"mean PSNR over its views ({i['distinct_matches']} distinct candidates matched); metrics are mean ± std "
+        "over the ground truths.", "",
+        results_table(res.summary, label), "",
+        "| time | seconds |", "|---|---|",
+        *[f"| {k.removesuffix('_s').replace('_', ' ')} | {v:.1f} |" for k, v in t.items()], "",
+        *[f"![{p}]({p})" for p in plots], "",
+        "| ground truth | match | " + " | ".join(h for _, h, _ in keys) + " |",
+        "|---|---|" + "---|" * len(keys),
+    ]
+    for r in res.per_ground_truth:
+        lines.append(f"| {r['configuration']:03d} | {r['match']} | " + " | ".join(f.format(r[k]) for k, _, f in keys) + " |")
+    lines += ["", "`metrics.json` holds every number here; `psnr_matrix.npy` the mean PSNR of every candidate (rows, "
+              "in the order of `candidates`) against every ground truth (columns)."]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(res: ScoreResult, out_dir: str | Path, method: dict[str, Any], command: str, dataset: str, predictions: str) -> Path:
+    """Write every output to ``out_dir`` (created); returns the path of ``report.md``."""
+    import time
+
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    np.save(buf, res.matrix)
+    D.atomic_write_bytes(out / "psnr_matrix.npy", buf.getvalue())
+    plots = write_plots(res, out)
+    D.atomic_write_bytes(out / "report.md", report_markdown(res, method, command, plots).encode())
+    res.timings["report_s"] = time.perf_counter() - t0
+    res.timings["total_s"] = sum(v for k, v in res.timings.items() if k != "total_s")  # every stage
+    D.atomic_write_json(out / "metrics.json", metrics_json(res, method, command, dataset, predictions))
+    return out / "report.md"

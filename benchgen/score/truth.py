@@ -1,0 +1,140 @@
+"""The ground truth of a scoring: evaluated test views, co-visibility masks, masked colours.
+
+Shared by ``benchgen score`` and ``osn evaluate`` so that their numbers are comparable: the same
+evenly spread subset of test views (:func:`evaluated_views`) and the same co-visibility masks
+(:func:`configuration_masks`, from ground-truth depth and ids as in docs/metrics.md).
+
+Only what the candidate pass needs stays in memory: per view, every configuration's colour with
+masked-out pixels zeroed (uint8) and the masks. Depth, ids and unmasked colour of a configuration
+are read again from the dataset when its matched candidate gets its full metrics.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from scenecore import dataset as D
+from benchgen.score import metrics as M
+
+
+def evaluated_views(scene: D.Scene, max_views: int = 0) -> list[D.Frame]:
+    """Test frames in (time, view) order; with ``max_views`` > 0 at most that many, evenly spread."""
+    test = sorted(scene.test_frames, key=lambda f: (f.time_index, f.view))
+    if max_views and len(test) > max_views:
+        test = [test[i] for i in np.linspace(0, len(test) - 1, max_views).round().astype(int)]
+    return test
+
+
+def configuration_masks(
+    scene: D.Scene, scales: np.ndarray, frames: Sequence[D.Frame], depth: np.ndarray, ids: np.ndarray,
+    train_depth: np.ndarray, train_ids: np.ndarray,
+) -> np.ndarray:
+    """Co-visibility masks ``(V, H, W)`` bool of one configuration's views ``frames``.
+
+    ``depth``/``ids`` ``(V, H, W)`` are the configuration's ground truth on those views;
+    ``train_depth``/``train_ids`` ``(T, H, W)`` the stored (base) training video in time order.
+    Each test pixel's surface point moves with its object to every training time and is
+    co-visible when a training frame of this configuration saw it (:func:`metrics.covisibility_mask`).
+    """
+    K = scene.intrinsics.matrix()
+    t_c2w = np.stack([f.camera_to_world for f in sorted(scene.train_frames, key=lambda f: f.time_index)])
+    t_depths = [M.configured_depth(d, i, scales) for d, i in zip(train_depth, train_ids)]
+    transforms: dict[int, np.ndarray] = {}  # per test time: they depend on the time only
+    out = np.zeros(depth.shape, bool)
+    for v, f in enumerate(frames):
+        if f.time_index not in transforms:
+            transforms[f.time_index] = M.covisibility_transforms(scene, scales, f.time_index)
+        out[v] = M.covisibility_mask(
+            depth[v], K, f.camera_to_world, t_depths, K, t_c2w,
+            object_ids=np.where(ids[v] == D.NO_OBJECT, 0, ids[v]), object_transforms=transforms[f.time_index],
+        )
+    return out
+
+
+@dataclass
+class Truth:
+    """The evaluated views of every ground-truth configuration.
+
+    ``masked_rgb`` ``(V, G, H*W*3)`` uint8: colour with masked-out pixels zeroed, view-major so
+    that one view of all G configurations is contiguous; ``mask`` ``(V, G, H*W)`` bool
+    (True = co-visible, evaluated); ``scales`` ``(G, K)``.
+    """
+
+    root: Path
+    scene: D.Scene
+    frames: list[D.Frame]
+    scales: np.ndarray
+    masked_rgb: np.ndarray
+    mask: np.ndarray
+
+    @property
+    def num_configurations(self) -> int:
+        return self.mask.shape[1]
+
+    @property
+    def num_views(self) -> int:
+        return len(self.frames)
+
+    def views(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Configuration g's ``rgb (V, H, W, 3)`` uint8, ``depth (V, H, W)``, ``ids (V, H, W)`` from disk."""
+        rgb, depth, ids = zip(*(D.read_frame(self.root, f.name, g, scene=self.scene) for f in self.frames))
+        return np.stack(rgb), np.stack(depth), np.stack(ids)
+
+    def masks(self, g: int) -> np.ndarray:
+        """Configuration g's masks ``(V, H, W)`` bool."""
+        return self.mask[:, g].reshape(self.num_views, self.scene.height, self.scene.width)
+
+
+# Set in the parent before forking workers, so that they inherit it instead of unpickling it.
+_JOB: dict[str, Any] = {}
+
+
+def _load_configuration(g: int) -> tuple[np.ndarray, np.ndarray]:
+    """Configuration g: masked colour ``(V, H*W*3)`` uint8 and masks ``(V, H*W)``."""
+    root, scene, frames, scales = _JOB["root"], _JOB["scene"], _JOB["frames"], _JOB["scales"]
+    rgb, depth, ids = zip(*(D.read_frame(root, f.name, g, scene=scene) for f in frames))
+    mask = configuration_masks(scene, scales[g], frames, np.stack(depth), np.stack(ids), *_JOB["train"])
+    V = len(frames)
+    return (np.stack(rgb) * mask[..., None]).reshape(V, -1), mask.reshape(V, -1)
+
+
+def load_truth(root: str | Path, max_views: int = 0, workers: int = 1, progress: bool = False) -> Truth:
+    """Read every configuration's evaluated views and compute their co-visibility masks.
+
+    ``workers`` > 1 reads and masks configurations in that many processes (same result).
+    """
+    from tqdm import tqdm
+
+    root = Path(root)
+    scene = D.load_scene(root)
+    frames = evaluated_views(scene, max_views)
+    if not frames:
+        raise D.DatasetError(f"{root / 'scene.json'}: the dataset has no test frames")
+    configs = D.load_configurations(root, scene)
+    if not configs:
+        raise D.DatasetError(f"{root / 'scene.json'}: the dataset has no ground-truth configurations")
+    _, t_depth, t_ids = D.read_training_video(root, scene)
+    scales = np.stack([c.scales for c in configs])
+    _JOB.update(root=root, scene=scene, frames=frames, scales=scales, train=(t_depth, t_ids))
+    G, V, P = len(configs), len(frames), scene.height * scene.width
+    masked_rgb, mask = np.empty((V, G, P * 3), np.uint8), np.empty((V, G, P), bool)
+    try:
+        with tqdm(total=G, desc="ground truth", unit="config", disable=not progress, dynamic_ncols=True) as bar:
+            if workers > 1:
+                with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+                    for g, (rgb_g, mask_g) in enumerate(pool.map(_load_configuration, range(G))):
+                        masked_rgb[:, g], mask[:, g] = rgb_g, mask_g
+                        bar.update()
+            else:
+                for g in range(G):
+                    masked_rgb[:, g], mask[:, g] = _load_configuration(g)
+                    bar.update()
+    finally:
+        _JOB.clear()
+    return Truth(root, scene, frames, scales, masked_rgb, mask)

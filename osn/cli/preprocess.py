@@ -1,0 +1,105 @@
+"""``osn oracle`` and ``osn preprocess``: command-line front ends of :mod:`osn.preprocess`."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from scenecore.cli import UserError, subcommand
+from scenecore.dataset import atomic_write_json
+from osn.preprocess.inputs import IGNORE_ID, SceneInputs, save_inputs
+from osn.preprocess.oracle import OracleConfig, oracle_inputs
+from osn.preprocess.sfm import PreprocessConfig, PreprocessReport
+from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
+
+
+def _cmd_oracle(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    inputs = oracle_inputs(args.dataset, OracleConfig(points_per_frame=args.points_per_frame, seed=args.seed))
+    save_inputs(args.out, inputs)
+    print(f"oracle inputs for {inputs.num_objects} objects written to {args.out} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    try:
+        cfg = PreprocessConfig(
+            matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
+            max_features=args.max_features, upscale=args.upscale, grey=args.grey,
+        )
+    except ValueError as e:
+        raise UserError(f"osn preprocess: {e}") from None
+    t0 = time.perf_counter()
+    src = Path(args.source)
+    progress = (lambda msg: print(f"  {msg} ...", flush=True))
+    if (src / "scene.json").exists():
+        if args.masks:
+            raise UserError(f"{src} is a benchgen dataset: its instance masks are used, drop --masks")
+        inputs, report = preprocess_dataset(src, cfg, progress)
+    else:
+        inputs, report = _preprocess_frames(src, args, cfg, progress)
+    save_inputs(args.out, inputs)
+    atomic_write_json(Path(args.out) / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped,
+                                                                 "seconds": time.perf_counter() - t0})
+    print("\n".join(report_lines(report.objects)))
+    print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _preprocess_frames(
+    src: Path, args: argparse.Namespace, cfg: PreprocessConfig, progress: Callable[[str], None]
+) -> tuple[SceneInputs, PreprocessReport]:
+    """``osn preprocess FRAMES --masks MASKS``: any video, with known intrinsics and instance masks."""
+    if not args.masks:
+        raise UserError(f"{src}: not a benchgen dataset (no scene.json), so --masks MASKS_DIR is required")
+    images, masks, names = load_video(src, args.masks)
+    K = intrinsics_from_args(args.intrinsics, args.fov, images.shape[2], images.shape[1])
+    ids = sorted(int(i) for i in np.unique(masks) if i not in (255, IGNORE_ID))
+    anchor = args.anchor if args.anchor is not None else max(ids, key=lambda i: int((masks == i).sum()))
+    if anchor not in ids:
+        raise UserError(f"--anchor {anchor} is not an id found in {args.masks} (found {ids})")
+    T = len(images)
+    inputs, report = preprocess_video(
+        images, masks, K, np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1), {i: f"object{i}" for i in ids},
+        anchor, cfg, progress,
+    )
+    inputs.meta["frames"] = names
+    return inputs, report
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register ``osn oracle`` and ``osn preprocess`` on the ``osn`` command's subparsers."""
+    p = subcommand(sub, "oracle", _cmd_oracle, "per-object inputs from a dataset's ground truth (what perfect SfM would give)")
+    p.add_argument("dataset", help="benchgen dataset directory")
+    p.add_argument("--out", required=True, help="output directory (inputs.json + inputs.npz)")
+    p.add_argument("--points-per-frame", type=int, default=256, help="sparse depths kept per object and frame")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sparse subsampling")
+
+    p = subcommand(
+        sub, "preprocess", _cmd_preprocess, "per-object SfM (pycolmap) from frames and instance masks",
+        description="Per-object SfM with pycolmap: SIFT inside each object's mask, matching, incremental mapping "
+        "with the known pinhole camera. SOURCE is a benchgen dataset (its masks and intrinsics are used, and the "
+        "result is aligned to its ground truth to report accuracy) or a directory of frames with --masks.",
+    )
+    p.add_argument("source", help="benchgen dataset directory, or a directory of video frames (PNG/JPG, sorted by name)")
+    p.add_argument("--masks", help="directory of instance-id PNGs named like the frames (255 = no object)")
+    p.add_argument("--intrinsics", help="pinhole intrinsics fx,fy,cx,cy in pixels (frames directory only)")
+    p.add_argument("--fov", type=float, help="horizontal field of view in degrees, centred principal point (frames directory only)")
+    p.add_argument("--anchor", type=int, help="id of the anchor (background) object; default: the id covering most pixels")
+    p.add_argument("--out", required=True, help="output directory (inputs.json, inputs.npz, preprocess_report.json)")
+    p.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], default="auto",
+                   help="feature matching; auto = exhaustive up to 60 frames, sequential beyond")
+    p.add_argument("--min-frames", type=int, default=3, help="an object must register at least this many frames")
+    p.add_argument("--max-features", type=int, default=4096, help="SIFT features per frame and object")
+    p.add_argument("--upscale", type=int, default=2,
+                   help="upsample frames by this integer factor before SIFT (objects under ~100 px need 2)")
+    p.add_argument("--grey", choices=["auto", "luminance", "principal"], default="auto",
+                   help="grey image SIFT sees: luminance, the object's principal colour axis, or auto "
+                   "(principal only for objects whose colours differ mostly in hue, e.g. red on blue)")
+    p.add_argument("--on-failure", choices=["stop", "skip"], default="stop",
+                   help="an object that fails to register: stop with its message, or train without it")
+    p.add_argument("--seed", type=int, default=0, help="every pycolmap random seed")

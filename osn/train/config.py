@@ -1,0 +1,120 @@
+"""The training configuration (``config.yaml`` of a run) and the label pool's automatic stride."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from scenecore.config import Rule, choice, from_dict, integer, number, validate
+
+from osn.model.fields import FieldConfig
+
+#: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
+_POSITIVE = ("rays_per_object", "rays", "samples", "scale_width", "scale_layers", "scale_samples",
+             "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
+#: Counts that may be 0 (a phase or a term switched off) but not negative.
+_NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
+                 "free_band", "label_rays", "label_erode", "label_stride")
+_FRACTIONS = ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc")
+
+_RULES: dict[str, Rule] = {
+    **{name: integer(1) for name in _POSITIVE},
+    **{name: integer(0) for name in _NON_NEGATIVE},
+    **{name: number(0.0, 1.0) for name in _FRACTIONS},
+    # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
+    "valid_threshold": number(0.0, 1.0, hi_open=True),
+    "free_space": choice("none", "anchor", "all"),
+}
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (stored as ``config.yaml`` in the run).
+
+    Iteration counts are per phase; ``rays`` counts are per step. See :mod:`osn.train.loop`.
+    The defaults are the CPU default (``configs/osn-cpu.yaml``).
+    """
+
+    seed: int = 0
+    field: FieldConfig = field(default_factory=FieldConfig)
+    stage1_iters: int = 400
+    rounds: int = 5
+    field_iters: int = 100
+    scale_iters: int = 150
+    final_scale_iters: int = 300
+    rays_per_object: int = 384
+    rays: int = 1024
+    depth_rays: int = 64
+    samples: int = 24
+    skip_occluded: float = 1e-3
+    w_rgb: float = 1.0
+    w_depth: float = 1.0
+    w_seg: float = 0.01
+    w_opacity: float = 1.0
+    w_free: float = 1.0
+    free_space: str = "anchor"
+    free_rays: int = 128
+    free_band: int = 4
+    scale_width: int = 64
+    scale_layers: int = 4
+    scale_lr: float = 5e-3
+    scale_samples: int = 1024
+    label_rays: int = 0
+    label_replay: float = 0.5
+    label_samples: int = 24
+    label_trim: float = 0.01
+    label_erode: int = 0
+    label_stride: int = 0
+    coverage_threshold: float = 0.9
+    uncertain_acc: float = 0.05
+    valid_threshold: float = 0.95
+    candidates: int = 4096
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    eval_every: int = 200
+    eval_pixels: int = 4096
+    iou_samples: int = 20000
+    checkpoint_every: int = 250
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        validate(self, "training", _RULES)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> "TrainConfig":
+        """From plain data (parsed YAML); misspelt keys, here or under ``field``, are errors."""
+        d = dict(d or {})
+        if "background" in d:
+            d["background"] = tuple(float(x) for x in d["background"])
+        return from_dict(cls, d, "training", nested={"field": (FieldConfig, "field")})
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "TrainConfig":
+        """Read a YAML config; every error is a ``ValueError`` prefixed with ``path``."""
+        try:
+            return cls.from_dict(yaml.safe_load(Path(path).read_text()) or {})
+        except (ValueError, TypeError, yaml.YAMLError) as e:
+            raise ValueError(f"{path}: {e}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for ``config.yaml`` (round-trips through :meth:`from_dict`)."""
+        d = dataclasses.asdict(self)
+        d["background"] = list(self.background)
+        return d
+
+
+#: ``label_stride: 0`` keeps about this many pool pixels per frame side: the per-object depth
+#: renders of a scale phase cost ~ T * (side / stride)^2 rays per object, 16x more at 512 px
+#: than at 128 px for no better labels (a bound is set by a few contact rays either way).
+AUTO_LABEL_SIDE = 128
+
+
+def label_stride(configured: int, height: int, width: int) -> int:
+    """The label pool's pixel stride: ``configured`` when > 0, else one that keeps about
+    ``AUTO_LABEL_SIDE`` pixels along the longer image side (1 up to 128 px, 4 at 512 px)."""
+    if configured > 0:
+        return configured
+    return max(1, -(-max(height, width) // AUTO_LABEL_SIDE))

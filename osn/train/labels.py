@@ -1,0 +1,123 @@
+"""The scale phase's label pool: which training pixels can say anything about the object scales.
+
+At the start of a scale phase every object's depth is rendered alone, in its own unit, on a
+strided grid of labelled training pixels (the soft Z-buffer's per-object depths, Eq. 17). The
+rays kept are those where the labelled object and another one both cover the ray opaquely and
+some scale vector in the sampling box explains the label; they become per-pair depth-order
+constraints (:func:`osn.model.softz.order_constraints`) that label every sampled scale vector
+of the phase's steps.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+import torch.nn.functional as F
+
+from osn.model.fields import Field
+from osn.model.softz import order_constraints
+from osn.model.volume import render
+from osn.train.config import TrainConfig, label_stride
+from osn.train.tensors import SceneTensors
+
+log = logging.getLogger(__name__)
+
+
+def label_pixels(st: SceneTensors, cfg: TrainConfig) -> torch.Tensor:
+    """Flat ``(P,)`` (frame * HW + pixel) indices of the label pool candidates: every
+    ``label_stride``-th pixel per axis, labelled, away from mask boundaries by ``label_erode``
+    (independent coverage is unreliable on silhouettes)."""
+    lab = st.labels.reshape(st.T, st.H, st.W)
+    keep = lab >= 0
+    e = cfg.label_erode
+    if e > 0:
+        padded = F.pad(lab[:, None].float(), (e, e, e, e), mode="replicate")
+        mx = F.max_pool2d(padded, 2 * e + 1, stride=1)[:, 0]
+        mn = -F.max_pool2d(-padded, 2 * e + 1, stride=1)[:, 0]
+        keep &= (mx == lab) & (mn == lab)
+    stride = label_stride(cfg.label_stride, st.H, st.W)
+    grid = torch.zeros(st.H, st.W, dtype=torch.bool, device=st.device)
+    grid[::stride, ::stride] = True
+    return torch.nonzero((keep & grid).reshape(-1))[:, 0]
+
+
+@torch.no_grad()
+def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tensor, cfg: TrainConfig,
+                        chunk: int = 8192) -> dict[str, torch.Tensor]:
+    """Every object rendered alone on training pixels ``flat (P,)``.
+
+    Returns ``depth (P, K)`` (independent planar depth in the object's own unit), ``acc (P, K)``
+    (opacity), ``covered (P, K)`` (``acc > coverage_threshold``) and ``uncertain (P,)``: some
+    object's ``acc`` is in ``(uncertain_acc, coverage_threshold]``.
+    """
+    HW = st.H * st.W
+    depth = torch.zeros(len(flat), st.K, device=st.device)
+    covered = torch.zeros(len(flat), st.K, dtype=torch.bool, device=st.device)
+    # Some object is semi-transparent on the ray (acc between uncertain_acc and the coverage
+    # threshold): whether it "covers" is a coin flip of the threshold, so the ray is dropped.
+    uncertain = torch.zeros(len(flat), dtype=torch.bool, device=st.device)
+    acc = torch.zeros(len(flat), st.K, device=st.device)
+    one = torch.ones(st.K, device=st.device)
+    frames_all, pix_all = flat // HW, flat % HW
+    for k in range(st.K):
+        idx = torch.nonzero(st.present[k, frames_all])[:, 0]  # absent frames cost nothing
+        for a in range(0, len(idx), chunk):
+            i = idx[a : a + chunk]
+            out = render(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.label_samples, None, None, cfg.skip_occluded)
+            depth[i, k] = out.normalised_depth()
+            acc[i, k] = out.acc
+            covered[i, k] = out.acc > cfg.coverage_threshold
+            uncertain[i] |= (out.acc > cfg.uncertain_acc) & (out.acc <= cfg.coverage_threshold)
+    return {"depth": depth, "covered": covered, "uncertain": uncertain, "acc": acc}
+
+
+def contested_rays(st: SceneTensors, flat: torch.Tensor, depth: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
+    """Mask ``(P,)`` of the rays ``flat (P,)`` (depths and coverage ``(P, K)``) that can inform
+    the scale network: the labelled object covers the ray, another object does too, and *some*
+    scale vector in the sampling box explains the label (``lo_L d_L < hi_j d_j`` for every
+    other covering j). Rays no sampled scale can explain (geometry noise) would only make every
+    sample look equally wrong."""
+    gt = st.labels.reshape(-1)[flat]
+    gt_cov = covered.gather(1, gt[:, None])[:, 0]
+    lo = st.ranges[:, 0].clone()
+    hi = st.ranges[:, 1].clone()
+    lo[st.anchor] = hi[st.anchor] = 1.0
+    best_l = (lo[gt] * depth.gather(1, gt[:, None])[:, 0].double())[:, None]
+    others = torch.where(covered, hi[None] * depth.double(), torch.full_like(depth, float("inf"), dtype=torch.float64))
+    others.scatter_(1, gt[:, None], float("inf"))
+    satisfiable = (best_l < others).all(1)
+    return gt_cov & (covered.sum(1) >= 2) & satisfiable
+
+
+def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, iteration: int) -> dict:
+    """The contested rays of the current fields: ``flat (P,)``, ``depth (P, K)``,
+    ``covered (P, K)``, ``gt (P,)`` and their ``constraints`` (:class:`OrderConstraints`).
+
+    Deterministic given the fields, so a resumed scale phase rebuilds the same pool.
+    ``iteration`` (the phase's first) only goes into the warning when no ray is contested.
+    """
+    flat = label_pixels(st, cfg)
+    c = render_alone_depths(st, fields, flat, cfg)
+    keep = contested_rays(st, flat, c["depth"], c["covered"]) & ~c["uncertain"]
+    pool = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
+    pool["gt"] = st.labels.reshape(-1)[pool["flat"]]
+    pool["constraints"] = order_constraints(pool["depth"], pool["covered"], pool["gt"])
+    if not len(pool["flat"]):
+        # No ray constrains any depth order (fields still transparent, or every ray dropped
+        # as semi-transparent): every sample is labelled valid, which says nothing.
+        log.warning(
+            "scale phase at iteration %d: no contested ray among %d labelled pixels (%d semi-transparent); "
+            "the network learns no depth order (fields not opaque yet? see uncertain_acc)",
+            iteration, len(flat), int(c["uncertain"].sum()),
+        )
+    return pool
+
+
+def near_positives(positives: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
+    """``n`` normalised scale vectors ``(n, K-1)`` (CPU) jittered around remembered valid ones
+    ``positives (M, K-1)``, at three spreads (0.01, 0.03, 0.1 of the box) so both the boundary
+    and the interior are reached."""
+    pick = positives[torch.randint(len(positives), (n,), generator=gen)]
+    sigma = torch.tensor([0.01, 0.03, 0.1])[torch.randint(3, (n, 1), generator=gen)]
+    return (pick + sigma * torch.randn(n, positives.shape[1], generator=gen)).clamp(0.0, 1.0 - 1e-6)

@@ -1,0 +1,105 @@
+"""What a metrics line measures: training-view PSNR and, given the exact region, valid-set accuracy.
+
+The monitor is the only training code that sees ground truth, and only what its caller hands it:
+the dataset's exact valid region (:class:`scenecore.validity.ValidRegion`) and the inputs'
+ground-truth units. It never changes what is trained.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from scenecore.validity import ValidRegion
+
+from benchgen.score.metrics import psnr_from_mse as psnr
+from osn.evaluate.units import actual_scales, ground_truth_problem
+from osn.model.scale_net import full_sbar
+from osn.model.volume import render
+from osn.train.trainer import Trainer
+
+log = logging.getLogger(__name__)
+
+
+class TrainingMonitor:
+    """Training-view PSNR on a fixed pixel subset and, with the exact region, valid-set accuracy.
+
+    Attributes:
+        flat: ``(N,)`` the scored training pixels (frame * HW + pixel), fixed for the run.
+        region: the exact region when valid-set accuracy is measured, else None (a single object,
+            no region given, or inputs without ground-truth units).
+        s_mc: ``(M, K-1)`` float64 Monte-Carlo samples of the normalised box (with ``region``).
+        actual_mc: ``(M, K)`` their actual (dataset) scales per object position.
+        exact: ``(M,)`` bool, the sample lies in the exact region.
+    """
+
+    def __init__(self, trainer: Trainer, region: ValidRegion | None) -> None:
+        self.tr = trainer
+        st, cfg = trainer.st, trainer.cfg
+        g = torch.Generator().manual_seed(12345)
+        # Pixels of dropped objects (IGNORE_ID) are never trained on, so they are not scored.
+        pool = st.usable if st.usable is not None else torch.arange(st.T * st.H * st.W, device=st.device)
+        n = min(cfg.eval_pixels, len(pool))
+        self.flat = pool[torch.randperm(len(pool), generator=g)[:n].to(st.device)]
+        self.region = None
+        # Scales need only the units; test cameras (world_to_anchor) are evaluation's concern.
+        problem = ground_truth_problem(st.inputs, test_views=False) if region is not None else None
+        if problem:
+            log.warning("valid-set accuracy is not measured during training: %s", problem)
+        if trainer.net is not None and region is not None and not problem:
+            self.region = region
+            self.s_mc = torch.rand(cfg.iou_samples, st.K - 1, generator=g, dtype=torch.float64)
+            sbar = full_sbar(self.s_mc, st.ranges.cpu(), st.anchor).numpy()
+            self.actual_mc = actual_scales(st.inputs, sbar)
+            full = np.ones((len(sbar), region.num_objects))
+            full[:, [o.id for o in st.inputs.objects]] = self.actual_mc
+            self.exact = np.asarray(region.contains(full))
+
+    @torch.no_grad()
+    def best_configuration(self) -> torch.Tensor:
+        """The best-scoring ``(K,)`` scale vector of 4096 fixed candidates (``[1]`` for one object)."""
+        tr = self.tr
+        if tr.net is None:
+            return torch.ones(1, dtype=torch.float64, device=tr.device)
+        g = torch.Generator().manual_seed(54321)
+        s = torch.rand(4096, tr.st.K - 1, generator=g).to(tr.device)
+        return full_sbar(s[tr.net(s).argmax()][None], tr.st.ranges, tr.st.anchor)[0]
+
+    @torch.no_grad()
+    def __call__(self) -> dict[str, float]:
+        """The measurements of one metrics line: ``psnr``; with several objects ``seg_acc`` and
+        ``sbar_best``; with the region ``precision``, ``recall``, ``iou`` and ``scale_rel_err``."""
+        tr, st, cfg = self.tr, self.tr.st, self.tr.cfg
+        frames, p = self.flat // (st.H * st.W), self.flat % (st.H * st.W)
+        sbar = self.best_configuration()
+        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, None, tr.bg, cfg.skip_occluded)
+        m: dict[str, float] = {"psnr": psnr(float(F.mse_loss(out.rgb, st.images[frames, p])))}
+        if st.K > 1:
+            lab = st.labels[frames, p]
+            ok = lab >= 0
+            m["seg_acc"] = float((out.log_seg[ok].argmax(1) == lab[ok]).float().mean())
+            m["sbar_best"] = [float(x) for x in sbar.cpu()]
+        if self.region is not None:
+            learned = (tr.net(self.s_mc.float().to(tr.device)) > 0).cpu().numpy()
+            inter = float(np.sum(learned & self.exact))
+            m["precision"] = inter / max(float(learned.sum()), 1.0)
+            m["recall"] = inter / max(float(self.exact.sum()), 1.0)
+            m["iou"] = inter / max(float(np.sum(learned | self.exact)), 1.0)
+            m["scale_rel_err"] = self._interval_error(learned)
+        return m
+
+    def _interval_error(self, learned: np.ndarray) -> float:
+        """Mean relative error of the learned per-object scale intervals (actual scales, within
+        the sampled box) against the exact region's intervals; 1.0 when either set is empty."""
+        if not learned.any() or not self.exact.any():
+            return 1.0
+        errs = []
+        for k in range(self.tr.st.K):
+            if k == self.tr.st.anchor:
+                continue
+            a, e = self.actual_mc[learned, k], self.actual_mc[self.exact, k]
+            errs += [abs(a.min() - e.min()) / e.min(), abs(a.max() - e.max()) / e.max()]
+        return float(np.mean(errs))

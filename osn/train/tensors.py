@@ -1,0 +1,126 @@
+"""The per-object inputs as device tensors, and the device training runs on."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from scenecore.cameras import pixel_rays
+
+from osn.model.fields import Field
+from osn.model.volume import ObjectRays
+from osn.preprocess.inputs import IGNORE_ID, SceneInputs
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """CUDA when available (or asked for), else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class SceneTensors:
+    """The inputs as device tensors, indexed by object *position* k (``inputs.objects[k]``).
+
+    A training pixel is addressed by its flat index ``frame * H * W + pixel``.
+
+    Attributes:
+        images: ``(T, HW, 3)`` float RGB in [0, 1].
+        labels: ``(T, HW)`` object position per pixel, -1 where no object.
+        dirs: ``(HW, 3)`` camera-frame ray directions with unit z.
+        poses: ``(K, T, 4, 4)`` camera-to-object per object and frame (identity where absent).
+        present: ``(K, T)`` bool, the object has a pose in the frame.
+        t_range: ``(K, 2)`` planar-depth range each object is sampled in (its own unit).
+        sp_frame, sp_pix, sp_depth, sp_obj: ``(P,)`` every sparse depth: frame, pixel, depth, object.
+        obj_pixels, obj_sparse: per object the flat pixels of its mask / indices of its sparse depths.
+        usable: flat pixels not of a dropped object (``IGNORE_ID``); None when that is every pixel.
+        ignored: ``(T * HW,)`` bool, the pixel belongs to a dropped object.
+        ranges: ``(K, 2)`` float64 scale range per object (Eq. 1).
+    """
+
+    def __init__(self, inputs: SceneInputs, device: torch.device) -> None:
+        self.inputs = inputs
+        self.device = device
+        T, H, W = inputs.images.shape[:3]
+        self.T, self.H, self.W, self.K = T, H, W, inputs.num_objects
+        self.images = torch.from_numpy(inputs.images).to(device).float().reshape(T, H * W, 3) / 255.0
+        pos_of_id = np.full(256, -1, dtype=np.int64)
+        for k, o in enumerate(inputs.objects):
+            pos_of_id[o.id] = k
+        self.labels = torch.from_numpy(pos_of_id[inputs.masks.reshape(T, H * W)]).to(device)  # -1 = none
+        _, d = pixel_rays(inputs.K, np.eye(4), W, H)
+        self.dirs = torch.from_numpy(d).float().to(device)  # (HW, 3), camera frame, unit z
+        self.anchor = inputs.anchor_pos
+        self.poses = torch.eye(4, device=device).repeat(self.K, T, 1, 1)
+        self.present = torch.zeros(self.K, T, dtype=torch.bool, device=device)
+        self.t_range = torch.zeros(self.K, 2, device=device)  # object-unit planar depth range
+        for k, o in enumerate(inputs.objects):
+            fr = torch.from_numpy(o.frames).long().to(device)
+            self.poses[k, fr] = torch.from_numpy(o.cam_to_obj).float().to(device)
+            self.present[k, fr] = True
+            self.t_range[k] = torch.tensor([0.5 * o.near, 2.0 * o.far])
+        self._sparse_depths(inputs)
+        # Per object: flat (frame * HW + pixel) indices of its masked pixels and of its sparse depths.
+        flat_labels = self.labels.reshape(-1)
+        # Pixels of objects that preprocessing dropped carry no supervision at all (None: every pixel).
+        ignored = torch.from_numpy(inputs.masks.reshape(-1) == IGNORE_ID).to(device)
+        self.usable = torch.nonzero(~ignored)[:, 0] if bool(ignored.any()) else None
+        self.obj_pixels = [torch.nonzero(flat_labels == k)[:, 0] for k in range(self.K)]
+        self.ignored = ignored
+        self.obj_sparse = [torch.nonzero(self.sp_obj == k)[:, 0] for k in range(self.K)]
+        self.ranges = torch.from_numpy(inputs.scale_ranges()).to(device, torch.float64)
+
+    def _sparse_depths(self, inputs: SceneInputs) -> None:
+        """Every object's sparse depths as flat ``(P,)`` tensors of frame, pixel, depth and object."""
+        sp_frame, sp_pix, sp_depth, sp_obj = [], [], [], []
+        for k, o in enumerate(inputs.objects):
+            for slot, t in enumerate(o.frames):
+                pix, dep = o.sparse_pix[slot], o.sparse_depth[slot]
+                if len(dep) == 0:
+                    continue
+                sp_frame.append(np.full(len(dep), t))
+                sp_pix.append(pix[:, 1] * self.W + pix[:, 0])
+                sp_depth.append(dep)
+                sp_obj.append(np.full(len(dep), k))
+
+        def cat(xs: list[np.ndarray], dt: torch.dtype) -> torch.Tensor:
+            return torch.from_numpy(np.concatenate(xs) if xs else np.zeros(0)).to(self.device, dt)
+
+        self.sp_frame, self.sp_pix = cat(sp_frame, torch.long), cat(sp_pix, torch.long)
+        self.sp_depth, self.sp_obj = cat(sp_depth, torch.float32), cat(sp_obj, torch.long)
+
+    def free_pixels(self, mode: str, band: int) -> list[torch.Tensor]:
+        """Per object the flat indices of pixels its field must leave empty, within ``band``
+        pixels of its mask in frames where it is present.
+
+        ``mode`` "anchor": pixels showing the anchor or nothing (objects are never behind the
+        anchor, e.g. a room that contains them); "all": every pixel of another object too
+        (the paper's masked images; also carves what other objects hide); "none": no pixels.
+        """
+        T, H, W = self.T, self.H, self.W
+        lab = self.labels.reshape(T, H, W)
+        out = []
+        for k in range(self.K):
+            if mode == "none":
+                out.append(torch.zeros(0, dtype=torch.long, device=self.device))
+                continue
+            near = F.max_pool2d((lab == k).float()[:, None], 2 * band + 1, stride=1, padding=band)[:, 0] > 0
+            free = (lab != k) if mode == "all" else (lab == -1) | ((lab == self.anchor) & (k != self.anchor))
+            keep = near & free & self.present[k][:, None, None] & ~self.ignored.reshape(T, H, W)
+            out.append(torch.nonzero(keep.reshape(-1))[:, 0])
+        return out
+
+    @property
+    def has_depth(self) -> bool:
+        return self.sp_depth.numel() > 0
+
+    def object_rays(self, fields: list[Field], frames: torch.Tensor, sbar: torch.Tensor, objects: list[int] | None = None) -> list[ObjectRays]:
+        """Per-object views of rays from training ``frames (R,)`` for configuration ``sbar (K,)``."""
+        out = []
+        for k in objects if objects is not None else range(self.K):
+            s = sbar[k].float()
+            P = self.poses[k, frames].clone()
+            P[:, :3, :3] = P[:, :3, :3] / s  # cam_to_obj_k @ diag(1/s): scaling about the camera
+            out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s))
+        return out

@@ -1,0 +1,307 @@
+"""One training iteration at a time: the models, their optimisers, the RNG and the three steps.
+
+* stage 1 (:meth:`Trainer.step_stage1`): every object alone on its own masked pixels;
+* field phase (:meth:`Trainer.step_fields`): all objects composited at one valid scale vector;
+* scale phase (:meth:`Trainer.step_scale`): the scale network on sampled scale vectors labelled
+  by the depth orders of :mod:`osn.train.labels`.
+
+:meth:`Trainer.state_dict` holds everything a resume needs (weights, optimisers, every RNG).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from osn.model.fields import make_field
+from osn.model.run import CHECKPOINT_VERSION
+from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
+from osn.model.softz import OrderConstraints, order_constraints, trimmed_labels
+from osn.model.volume import render
+from osn.preprocess.inputs import SceneInputs
+from osn.train.config import TrainConfig
+from osn.train.labels import build_label_pool, near_positives
+from osn.train.schedule import Phase, build_schedule
+from osn.train.tensors import SceneTensors
+
+log = logging.getLogger(__name__)
+
+#: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
+REPLAY_SIZE = 4096
+
+
+class Trainer:
+    """Owns the fields, the scale network, their optimisers and the RNG; one ``step`` per iteration."""
+
+    def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
+        self.cfg, self.device = cfg, device
+        self.st = SceneTensors(inputs, device)
+        K = self.st.K
+        torch.manual_seed(cfg.seed)
+        self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k).to(device) for k, o in enumerate(inputs.objects)]
+        self.net = ScaleNet(K - 1, cfg.scale_width, cfg.scale_layers, seed=cfg.seed).to(device) if K > 1 else None
+        self.net_opt = torch.optim.Adam(self.net.parameters(), lr=cfg.scale_lr) if self.net is not None else None
+        self.schedule = build_schedule(cfg, K)
+        self.total = self.schedule[-1].end if self.schedule else 0
+        self.field_total = sum(p.end - p.start for p in self.schedule if p.name != "scale")
+        res = cfg.field.resolutions()
+        self.upsample_at = {int(round(self.field_total * 0.4 * (i + 1) / (len(res) - 1))): r for i, r in enumerate(res[1:])} if len(res) > 1 else {}
+        self.field_iter = 0
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.fallbacks = 0
+        self.cache: dict[str, Any] | None = None  # the scale phase's label pool (labels.build_label_pool)
+        self.cache_key: int | None = None  # first iteration of the phase the pool belongs to
+        self.noise_floor = 0.0
+        self.positives = torch.zeros(0, max(K - 1, 1))
+        self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
+        self.bg = torch.tensor(cfg.background, device=device)
+        self.free = self.st.free_pixels(cfg.free_space, cfg.free_band)
+        self._make_field_opt()
+
+    # ---- optimisers and state ------------------------------------------------------------
+
+    def _make_field_opt(self) -> None:
+        groups = [g for f in self.fields for g in f.param_groups(self.cfg.field.lr_grid, self.cfg.field.lr_net)]
+        self.field_opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a resume needs: counters, weights, optimisers, replay buffer, RNG states."""
+        return {
+            "version": CHECKPOINT_VERSION,
+            "iteration": self.iteration,
+            "field_iter": self.field_iter,
+            "elapsed": self.elapsed,
+            "fallbacks": self.fallbacks,
+            "noise_floor": self.noise_floor,
+            "positives": self.positives,
+            "loss_acc": self.loss_acc,
+            "resolutions": [f.resolution for f in self.fields],
+            "fields": [f.state_dict() for f in self.fields],
+            "field_opt": self.field_opt.state_dict(),
+            "net": self.net.state_dict() if self.net is not None else None,
+            "net_opt": self.net_opt.state_dict() if self.net_opt is not None else None,
+            "gen": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "config": self.cfg.to_dict(),
+        }
+
+    def load_state_dict(self, s: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (read onto any device; RNG states go back to the CPU)."""
+        self.iteration, self.field_iter, self.elapsed = s["iteration"], s["field_iter"], s["elapsed"]
+        self.fallbacks, self.noise_floor = s["fallbacks"], s["noise_floor"]
+        # RNG states must be CPU byte tensors and the replay buffer lives on the CPU, whatever
+        # device the checkpoint was read onto.
+        self.positives = s.get("positives", self.positives).cpu()  # version 1: resumes with an empty buffer
+        self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
+        for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
+            f.set_resolution(r)
+            f.load_state_dict(sd)
+        self._make_field_opt()
+        self.field_opt.load_state_dict(s["field_opt"])
+        if self.net is not None:
+            self.net.load_state_dict(s["net"])
+            self.net_opt.load_state_dict(s["net_opt"])
+        self.gen.set_state(s["gen"].cpu())
+        torch.set_rng_state(s["torch_rng"].cpu())
+
+    def non_finite_parameters(self) -> list[str]:
+        """Which models hold a NaN or infinite weight (``field <id>``, ``scale network``)."""
+        bad = [f"field {o.id}" for o, f in zip(self.st.inputs.objects, self.fields)
+               if not all(bool(torch.isfinite(p).all()) for p in f.parameters())]
+        if self.net is not None and not all(bool(torch.isfinite(p).all()) for p in self.net.parameters()):
+            bad.append("scale network")
+        return bad
+
+    def phase(self, it: int) -> Phase:
+        """The phase global iteration ``it`` belongs to."""
+        return next(p for p in self.schedule if p.start <= it < p.end)
+
+    # ---- ray batches ---------------------------------------------------------------------
+
+    def _randint(self, n: int, size: int) -> torch.Tensor:
+        return torch.randint(n, (size,), generator=self.gen).to(self.device)
+
+    def _depth_loss(self, out_depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return F.mse_loss(out_depth, target) if target.numel() else out_depth.sum() * 0.0
+
+    def _free_loss(self, k: int) -> torch.Tensor:
+        """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see
+        :meth:`SceneTensors.free_pixels`): keeps its field from bleeding past its silhouette,
+        which would otherwise read as "k is behind the anchor" to the scale labels."""
+        st, cfg, free = self.st, self.cfg, self.free[k]
+        if cfg.w_free <= 0 or not len(free):
+            return torch.zeros((), device=self.device)
+        fp = free[self._randint(len(free), cfg.free_rays)]
+        one = torch.ones(st.K, device=self.device)
+        out = render(st.object_rays(self.fields, fp // (st.H * st.W), one, [k]), st.dirs[fp % (st.H * st.W)], self.cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        return out.acc.square().mean()
+
+    def _tv(self, k: int) -> torch.Tensor | float:
+        w = self.cfg.field.tv_density
+        return w * self.fields[k].density_tv() if w > 0 else 0.0
+
+    # ---- stage 1 -------------------------------------------------------------------------
+
+    def step_stage1(self) -> dict[str, float]:
+        """One stage-1 step: each object alone on its masked pixels and sparse depths (Eq. 2)."""
+        st, cfg = self.st, self.cfg
+        losses = {"rgb": 0.0, "depth": 0.0, "opacity": 0.0, "free": 0.0}
+        total = 0.0
+        one = torch.ones(1, device=self.device)
+        for k in range(st.K):
+            pix = st.obj_pixels[k][self._randint(len(st.obj_pixels[k]), cfg.rays_per_object)]
+            frames, p = pix // (st.H * st.W), pix % (st.H * st.W)
+            n_rgb = len(p)
+            if st.has_depth and cfg.w_depth > 0 and len(st.obj_sparse[k]):
+                sp = st.obj_sparse[k][self._randint(len(st.obj_sparse[k]), cfg.depth_rays)]
+                frames = torch.cat([frames, st.sp_frame[sp]])
+                p = torch.cat([p, st.sp_pix[sp]])
+                d_gt = st.sp_depth[sp]
+            else:
+                d_gt = torch.zeros(0, device=self.device)
+            rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
+            out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+            l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
+            l_depth = self._depth_loss(out.depth[n_rgb:], d_gt)
+            # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
+            # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
+            # ray shortens) then pushes its surfaces behind the true ones (the room by ~6-10%).
+            l_acc = (1.0 - out.acc).square().mean()
+            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
+            l_free = self._free_loss(k)
+            total = total + cfg.w_free * l_free
+            losses["free"] += l_free.item() / st.K
+            losses["rgb"] += l_rgb.item() / st.K
+            losses["depth"] += l_depth.item() / st.K
+            losses["opacity"] += l_acc.item() / st.K
+        self.field_opt.zero_grad(set_to_none=True)
+        total.backward()
+        self.field_opt.step()
+        return losses
+
+    # ---- stage 2: field phase ------------------------------------------------------------
+
+    def sample_configuration(self) -> tuple[torch.Tensor, float]:
+        """One valid scale vector ``(K,)`` for a composite step (anchor = 1; single object = [1])."""
+        if self.net is None:
+            return torch.ones(1, dtype=torch.float64, device=self.device), 1.0
+        # With many objects uniform candidates can all miss the valid set (gnome-house's is 1.4%
+        # of the box with 3 free objects); then candidates around remembered valid vectors.
+        sbar, _, p, fell_back = sample_valid(
+            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False,
+            near=self._near_positives if len(self.positives) else None,
+        )
+        if fell_back and self.fallbacks == 0:
+            log.warning("no candidate scored above %.2f (best %.3f): field steps use the best one; "
+                        "the count is in metrics.jsonl ('fallbacks')", self.cfg.valid_threshold, p)
+        self.fallbacks += int(fell_back)
+        return sbar, p
+
+    def step_fields(self) -> dict[str, float]:
+        """One field-phase step: all objects composited at one valid scale vector (Eq. 8-10)."""
+        st, cfg = self.st, self.cfg
+        sbar, score = self.sample_configuration()
+        flat = self._randint(st.T * st.H * st.W, cfg.rays) if st.usable is None else st.usable[self._randint(len(st.usable), cfg.rays)]
+        frames, p = flat // (st.H * st.W), flat % (st.H * st.W)
+        n_rgb = len(p)
+        if st.has_depth and cfg.w_depth > 0:
+            sp = self._randint(len(st.sp_depth), cfg.depth_rays)
+            frames = torch.cat([frames, st.sp_frame[sp]])
+            p = torch.cat([p, st.sp_pix[sp]])
+            s_obj = sbar[st.sp_obj[sp]].float()
+            d_gt = st.sp_depth[sp]
+        else:
+            s_obj = d_gt = torch.zeros(0, device=self.device)
+        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
+        # Eq. 9 compares with sbar_k * d_gt; dividing by sbar_k keeps the loss's weight
+        # independent of the sampled scale (same minimiser).
+        l_depth = self._depth_loss(out.depth[n_rgb:] / s_obj, d_gt) if len(d_gt) else out.depth.sum() * 0.0
+        lab = st.labels[frames, p]
+        seg_ok = lab >= 0
+        l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
+        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg + sum(self._tv(k) for k in range(st.K))
+        self.field_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.field_opt.step()
+        return {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
+
+    # ---- stage 2: scale phase ------------------------------------------------------------
+
+    def ensure_cache(self, phase: Phase) -> None:
+        """Build the label pool at the start of a scale phase (rebuilt identically on resume)."""
+        if self.cache_key != phase.start:
+            self.cache = build_label_pool(self.st, self.fields, self.cfg, phase.start)
+            self.cache_key = phase.start
+
+    def _constraints(self) -> OrderConstraints:
+        """The scale phase's depth-order constraints: every contested pool ray, or a random
+        ``label_rays`` of them per step when that is set (> 0)."""
+        c, n = self.cache, len(self.cache["flat"])
+        if self.cfg.label_rays <= 0 or self.cfg.label_rays >= n:
+            return c["constraints"]
+        r = self._randint(n, self.cfg.label_rays)
+        return order_constraints(c["depth"][r], c["covered"][r], c["gt"][r])
+
+    def _scale_samples(self) -> torch.Tensor:
+        """Normalised free scales ``(scale_samples, K-1)`` for one scale step: uniform in the
+        box, plus a share ``label_replay`` jittered around scale vectors labelled valid earlier
+        (labels are always recomputed, so this only spends samples where the boundary is, never
+        biases a label)."""
+        cfg, st = self.cfg, self.st
+        n = cfg.scale_samples
+        n_near = int(round(n * cfg.label_replay)) if len(self.positives) else 0
+        s = torch.rand(n - n_near, st.K - 1, generator=self.gen)
+        if n_near:
+            s = torch.cat([s, self._near_positives(n_near)])
+        return s.to(self.device)
+
+    def _near_positives(self, n: int) -> torch.Tensor:
+        return near_positives(self.positives, n, self.gen)
+
+    def _remember(self, s: torch.Tensor) -> None:
+        """Keep the last ``REPLAY_SIZE`` scale vectors labelled valid (CPU, checkpointed)."""
+        self.positives = torch.cat([self.positives, s.detach().cpu().float()])[-REPLAY_SIZE:]
+
+    def step_scale(self, phase: Phase) -> dict[str, float]:
+        """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""
+        self.ensure_cache(phase)
+        cfg, st = self.cfg, self.st
+        s = self._scale_samples()
+        sbar = full_sbar(s, st.ranges, st.anchor)
+        cons = self._constraints()
+        # Labels relative to the best sample, per object pair (softz.trimmed_labels): learned
+        # depths have floaters that make some rays wrong for every scale vector. All samples are
+        # scored on the same rays, so "within tolerance of the best" compares like with like.
+        # The pool is already restricted to rays some scale in the box explains (contested_rays).
+        pv = cons.pair_violations(sbar)
+        self.noise_floor = float(pv.sum(1).min()) / max(cons.count, 1)
+        labels = trimmed_labels(pv, cons.sizes(), cfg.label_trim)
+        self._remember(s[labels > 0])
+        loss = F.binary_cross_entropy_with_logits(self.net(s), labels.to(self.device))
+        self.net_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.net_opt.step()
+        return {"bce": loss.item(), "valid_frac": float(labels.mean()), "contested": float(cons.rays), "noise_floor": self.noise_floor}
+
+    # ---- one iteration -------------------------------------------------------------------
+
+    def step(self) -> dict[str, float]:
+        """Run iteration ``self.iteration`` of its phase; returns that step's losses."""
+        ph = self.phase(self.iteration)
+        if ph.name == "scale":
+            out = self.step_scale(ph)
+        else:
+            if self.field_iter in self.upsample_at:
+                for f in self.fields:
+                    f.set_resolution(self.upsample_at[self.field_iter])
+                self._make_field_opt()  # parameter shapes changed (TensoRF does the same)
+            out = self.step_stage1() if ph.name == "stage1" else self.step_fields()
+            self.field_iter += 1
+        self.iteration += 1
+        return out

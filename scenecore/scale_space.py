@@ -1,0 +1,150 @@
+"""The object scale network and configuration maths of an export, in numpy (float64).
+
+Shared by the Blender add-on (Blender's bundled numpy only) and ``osn.export``: evaluating the
+network on normalised scales, Eq. 1 (normalised <-> actual scales), placing an object in a
+configuration, and the learned valid set's intervals and seeded samples.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .cameras import scale_about
+from .errors import ExportFormatError
+
+ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
+
+__all__ = [
+    "ACTIVATIONS", "scale_net_numpy", "denormalise", "normalise", "configured_poses", "scale_scores",
+    "learned_intervals", "sample_valid_configurations",
+]
+
+
+def _activate(x: np.ndarray, name: str) -> np.ndarray:
+    if name == "relu":
+        return np.maximum(x, 0.0)
+    if name == "sigmoid":
+        # Split by sign so large |x| never overflows exp.
+        e = np.exp(-np.abs(x))
+        return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+    if name == "softplus":
+        return np.logaddexp(0.0, x)
+    if name == "tanh":
+        return np.tanh(x)
+    if name == "identity":
+        return x
+    raise ExportFormatError(f"unknown activation {name!r} (expected one of {ACTIVATIONS})")
+
+
+def scale_net_numpy(
+    layers: Sequence[tuple[np.ndarray, np.ndarray]],
+    s_norm: np.ndarray,
+    hidden: str = "relu",
+    output: str = "sigmoid",
+) -> np.ndarray:
+    """Evaluate the object scale network on normalised scales.
+
+    Args:
+        layers: ``[(W, b), ...]`` with ``W (out, in)`` and ``b (out,)`` (torch ``nn.Linear`` layout).
+        s_norm: ``(N, K-1)`` or ``(K-1,)`` normalised scales of the non-anchor objects.
+        hidden, output: activation after every hidden layer and after the last one.
+
+    Returns:
+        ``(N,)`` validity scores (a scalar array for 1-D input), computed in float64.
+    """
+    x = np.atleast_2d(np.asarray(s_norm, dtype=np.float64))
+    for i, (W, b) in enumerate(layers):
+        x = x @ np.asarray(W, dtype=np.float64).T + np.asarray(b, dtype=np.float64)
+        x = _activate(x, output if i == len(layers) - 1 else hidden)
+    out = x[:, 0]
+    return out if np.ndim(s_norm) > 1 else out[0]
+
+
+def denormalise(s_norm: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Eq. 1 on ``(..., K)`` normalised scales with per-object ``ranges (K, 2)``."""
+    return ranges[:, 0] * (1.0 - s_norm) + ranges[:, 1] * s_norm
+
+
+def normalise(sbar: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`denormalise`."""
+    return (sbar - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
+
+
+def configured_poses(object_to_scene: np.ndarray, camera_centres: np.ndarray, sbar: float) -> np.ndarray:
+    """``(F, 4, 4)`` poses of one object scaled by ``sbar`` about each frame's training camera centre."""
+    return np.stack([scale_about(c, float(sbar)) @ P for P, c in zip(object_to_scene, camera_centres)])
+
+
+def scale_scores(
+    layers: Sequence[tuple[np.ndarray, np.ndarray]] | None,
+    sbar: np.ndarray,
+    ranges: np.ndarray,
+    anchor_index: int,
+    hidden: str = "relu",
+    output: str = "sigmoid",
+) -> np.ndarray:
+    """Validity scores ``(N,)`` of actual scales ``sbar (N, K)``: Eq. 1 inverted, anchor dropped,
+    then the network (all ones without a network: a single object is always valid)."""
+    sbar = np.atleast_2d(sbar)
+    if layers is None:
+        return np.ones(len(sbar))
+    free = [k for k in range(sbar.shape[1]) if k != anchor_index]
+    return scale_net_numpy(layers, normalise(sbar[:, free], ranges[free]), hidden, output)
+
+
+def learned_intervals(
+    layers: Sequence[tuple[np.ndarray, np.ndarray]] | None,
+    ranges: np.ndarray,
+    anchor_index: int,
+    threshold: float = 0.5,
+    hidden: str = "relu",
+    output: str = "sigmoid",
+    draws: int = 200_000,
+    seed: int = 0,
+) -> np.ndarray:
+    """``(K, 2)`` per-object actual-scale interval of the learned valid set (its bounding box).
+
+    Monte-Carlo over the whole normalised domain [0, 1)^(K-1); the anchor's interval is [1, 1].
+    Raises ``ExportFormatError`` when no draw is valid (the network accepts nothing), instead of
+    returning an empty or inverted interval.
+    """
+    K = len(ranges)
+    out = np.ones((K, 2))
+    free = [k for k in range(K) if k != anchor_index]
+    if not free:
+        return out
+    if layers is None:
+        out[free] = ranges[free]
+        return out
+    s = np.random.default_rng(seed).random((draws, len(free)))
+    ok = scale_net_numpy(layers, s, hidden, output) >= threshold
+    if not ok.any():
+        raise ExportFormatError(f"the scale network accepts none of {draws} uniform draws: no valid configuration")
+    sbar = denormalise(s[ok], ranges[free])
+    out[free, 0], out[free, 1] = sbar.min(0), sbar.max(0)
+    return out
+
+
+def sample_valid_configurations(
+    score: Callable[[np.ndarray], np.ndarray], intervals: np.ndarray, threshold: float, count: int, seed: int,
+    max_draws: int = 1_000_000,
+) -> np.ndarray:
+    """``(count, K)`` actual scales drawn uniformly inside ``intervals (K, 2)`` and kept when valid.
+
+    Seeded rejection sampling through ``score`` (actual scales ``(N, K)`` -> ``(N,)``, e.g.
+    :meth:`ExportData.validity`), batch by batch, so the result depends only on ``seed``.
+    Raises ``ExportFormatError`` if ``max_draws`` draws give too few.
+    """
+    rng = np.random.default_rng(seed)
+    lo, hi = intervals[:, 0], intervals[:, 1]
+    kept: list[np.ndarray] = []
+    drawn = 0
+    while sum(len(k) for k in kept) < count:
+        if drawn >= max_draws:
+            raise ExportFormatError(f"only {sum(len(k) for k in kept)} of {count} valid configurations in {max_draws} draws")
+        batch = lo + (hi - lo) * rng.random((4096, len(lo)))
+        drawn += len(batch)
+        kept.append(batch[score(batch) >= threshold])
+    return np.concatenate(kept)[:count]

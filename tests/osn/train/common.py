@@ -1,0 +1,27 @@
+"""A small, fast training config for the ``tiny`` dataset (32 px, 3 frames) and a metrics reader."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from osn.model.fields import FieldConfig
+from osn.train import TrainConfig
+
+
+def small_config(**kw: Any) -> TrainConfig:
+    """Stage 1 of 30 iterations, 2 rounds of 10 + 10, a final scale phase of 10 (70 in all)."""
+    base = dict(
+        stage1_iters=30, rounds=2, field_iters=10, scale_iters=10, final_scale_iters=10,
+        rays_per_object=128, rays=256, depth_rays=32, samples=12, scale_samples=64, label_rays=512,
+        label_stride=1, eval_every=20, eval_pixels=512, iou_samples=2000, checkpoint_every=25,
+        field=FieldConfig(kind="dense", resolution=24, initial_resolution=16, upsample_steps=1),
+    )
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def metrics(run: Path) -> list[dict]:
+    """Every line of ``run/metrics.jsonl`` (strict: a cut line fails the test)."""
+    return [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]

@@ -1,0 +1,56 @@
+"""The training and field configs: every impossible value is one error naming its key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from osn.model.fields import FieldConfig
+from osn.train import TrainConfig
+from osn.train.config import label_stride
+from tests.osn.train.common import small_config
+
+
+@pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
+                                 {"valid_threshold": 1.5}, {"valid_threshold": 1.0}, {"rounds": "five"},
+                                 {"label_replay": "high"}, {"free_space": "walls"}])
+def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
+    (key, value), = bad.items()
+    with pytest.raises(ValueError, match=f"{key} must"):
+        small_config(**bad)
+    path = tmp_path / "c.yaml"
+    path.write_text(f"{key}: {value}\n")
+    with pytest.raises(ValueError, match=f"^{path}: training config: {key} must"):
+        TrainConfig.from_yaml(path)
+
+
+def test_built_in_defaults_are_the_cpu_config() -> None:
+    root = Path(__file__).resolve().parents[3]
+    assert TrainConfig() == TrainConfig.from_yaml(root / "configs" / "osn-cpu.yaml")
+    with pytest.raises(ValueError, match="unknown training config keys"):
+        TrainConfig.from_dict({"stage1_iter": 3})
+
+
+def test_config_round_trips_and_checks_the_field_section(tmp_path: Path) -> None:
+    cfg = small_config(background=(0.5, 0.25, 0.0))
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match=r"unknown field config keys: \['resolutoin'\]"):
+        TrainConfig.from_dict({"field": {"resolutoin": 8}})
+    path = tmp_path / "c.yaml"
+    path.write_text("field:\n  resolution: 1\n")
+    with pytest.raises(ValueError, match=f"^{path}: field config: resolution must be an integer >= 2, got 1"):
+        TrainConfig.from_yaml(path)
+
+
+@pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0},
+                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"app_dim": True}])
+def test_field_config_rejects_impossible_values(bad: dict) -> None:
+    (key, _), = bad.items()
+    with pytest.raises(ValueError, match=f"field config: {key} must"):
+        FieldConfig(**bad)
+
+
+def test_auto_label_stride_keeps_the_pool_size_of_a_128_pixel_frame() -> None:
+    assert [label_stride(0, s, s) for s in (32, 64, 128, 129, 256, 512)] == [1, 1, 1, 2, 2, 4]
+    assert label_stride(0, 300, 512) == 4 and label_stride(3, 512, 512) == 3
