@@ -27,7 +27,7 @@ def test_schedule_has_rounds_and_skips_scale_phases_for_one_object() -> None:
     assert [p.name for p in build_schedule(dataclasses.replace(cfg, stage1_iters=0, scale_iters=0), 3)] == ["fields", "fields", "scale"]
 
 
-def test_single_object_has_no_scale_network(tiny_dataset: Path) -> None:
+def test_single_object_skips_the_scale_network(tiny_dataset: Path) -> None:
     inputs = oracle_inputs(tiny_dataset)
     inputs.objects = [o for o in inputs.objects if o.id == inputs.anchor]
     tr = Trainer(inputs, _cfg(), torch.device("cpu"))
