@@ -5,7 +5,8 @@ ground-truth configurations themselves followed by perturbed copies (noise and a
 shift of a configuration's colours; its depth and ids hard-linked), written as PNG / EXR on the
 evaluated views only. Then, each in a fresh process (so that its peak memory is its own):
 
-* ``benchgen score`` (streaming, exact) on N candidates, and on N / 10 (memory must not grow with N);
+* ``benchgen score`` (streaming, exact) on N candidates, and on the first N / 2 (same chunk size for
+  N >= 512: peak memory must not grow with N);
 * the naive loop: for each ground truth g, for each candidate, read it and score it (PSNR on the
   same masks), on the first ``--naive-gt`` ground truths (extrapolated to G; its matches are
   checked against the scorer's).
@@ -39,7 +40,7 @@ def build_predictions(dataset: Path, pred: Path, n: int, views: int, seed: int =
     from benchgen.score.truth import evaluated_views
 
     marker = pred / ".built.json"
-    spec = {"dataset": str(dataset.resolve()), "n": n, "views": views, "seed": seed}
+    spec = {"dataset": str(dataset.resolve()), "n": n, "views": views, "seed": seed, "builder": 2}
     if marker.exists() and json.loads(marker.read_text()) == spec:
         return
     scene = D.load_scene(dataset)
@@ -119,7 +120,7 @@ def main() -> int:
     p.add_argument("--views", type=int, default=30, help="evaluated test views (0 = all)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--naive-gt", type=int, default=2, help="ground truths the naive loop runs (extrapolated to G)")
-    p.add_argument("--skip-small", action="store_true", help="skip the N / 10 run")
+    p.add_argument("--skip-small", action="store_true", help="skip the N / 2 run")
     p.add_argument("--measure", default=None, help=argparse.SUPPRESS)
     p.add_argument("--pred", default=None, help=argparse.SUPPRESS)
     p.add_argument("--out", default=None, help=argparse.SUPPRESS)
@@ -137,12 +138,12 @@ def main() -> int:
           f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}", flush=True)
     runs = [(args.n, pred)]
     if not args.skip_small:
-        small = work / f"pred_n{args.n // 10}_v{args.views}"
+        small = work / f"pred_n{args.n // 2}_v{args.views}"
         small.mkdir(parents=True, exist_ok=True)
-        for name in sorted(os.listdir(pred))[: args.n // 10]:
-            if not (small / name).exists() and not name.startswith("."):
+        for name in sorted(n for n in os.listdir(pred) if not n.startswith("."))[: args.n // 2]:
+            if not (small / name).exists():
                 (small / name).symlink_to((pred / name).resolve())
-        runs.append((args.n // 10, small))
+        runs.append((args.n // 2, small))
     fast = {}
     for n, where in runs:
         r = run_measure(args, "score", where, work / f"score_n{n}")

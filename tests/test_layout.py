@@ -83,3 +83,18 @@ def test_kernel_imports_numpy_only() -> None:
     )
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]"
+
+
+def test_export_without_bpy_says_what_to_install(tmp_path) -> None:
+    """The one step that needs bpy outside rendering (OpenVDB volumes) fails with one clear line."""
+    r = _run(
+        """
+        from osn.export.writer import _openvdb
+        try:
+            _openvdb()
+        except ValueError as e:
+            print(e)
+        """
+    )
+    assert r.returncode == 0, r.stderr
+    assert "render extra" in r.stdout

@@ -8,18 +8,22 @@ float64 every product and sum is an exact integer while it stays below 2^53, i.e
 ~700k pixels: the errors are exact, whatever the BLAS, the chunking or the number of workers.
 Float candidates (in-memory renders) are scaled to the same units and are accurate to float64.
 
-Memory holds the ground truth, one chunk of candidates per worker and the ``(N, G)`` mean-PSNR
-matrix; it does not grow with N beyond that matrix.
+Workers only read and check candidates (the slow part: three files per view); the parent scores
+each chunk while the workers read the next ones. Memory holds the ground truth, a bounded number
+of chunks in flight and the ``(N, G)`` mean-PSNR matrix; it does not grow with N beyond that matrix.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Iterator, Sequence
 
 import numpy as np
+import torch
 
 from benchgen.score import metrics as M
 from benchgen.score.predictions import CandidateSource
@@ -28,9 +32,10 @@ from benchgen.score.truth import Truth
 #: Colour unit of the exact error: full-scale 16-bit. 8-bit values v are ``257 v`` (65535 / 255).
 UNIT = 65535.0
 _FROM_8BIT = 257.0
-#: Candidate colour (bytes, stored as loaded) per chunk: bounds a worker's memory.
-CHUNK_BYTES = 256 * 2**20
+#: Candidate colour (bytes, as 8-bit) per chunk, and chunks read ahead per worker: bound memory.
+CHUNK_BYTES = 128 * 2**20
 MAX_CHUNK = 64
+READ_AHEAD = 2
 
 
 def colour_units(rgb: np.ndarray) -> np.ndarray:
@@ -49,54 +54,61 @@ def chunk_size(num_candidates: int, truth: Truth) -> int:
     return max(1, min(MAX_CHUNK, CHUNK_BYTES // per_candidate, math.ceil(num_candidates / 8)))
 
 
-def view_psnr(rgbs: Sequence[np.ndarray], truth: Truth) -> np.ndarray:
+def truth_energy(truth: Truth) -> tuple[np.ndarray, np.ndarray]:
+    """Per view and ground truth: ``sum_p m y^2`` (8-bit units) and the mask's pixel count, ``(V, G)`` each."""
+    y2 = np.stack([np.einsum("gp,gp->g", y, y, dtype=np.float64) for y in truth.masked_rgb])
+    return y2, truth.mask.sum(-1, dtype=np.float64)
+
+
+def view_psnr(rgbs: Sequence[np.ndarray], truth: Truth, energy: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """PSNR ``(B, G, V)`` of B candidates, each ``(V, H, W, 3)`` of any colour dtype, against every truth view.
 
-    NaN where a view's mask is empty (nothing to compare), as :func:`metrics.psnr`.
+    ``energy``: :func:`truth_energy` (computed when not given). NaN where a view's mask is empty
+    (nothing to compare), as :func:`metrics.psnr`.
     """
-    B, V, G = len(rgbs), truth.num_views, truth.num_configurations
-    sse = np.empty((B, G, V))
-    count = np.empty((G, V))
+    y2, count = truth_energy(truth) if energy is None else energy
+    B, V = len(rgbs), truth.num_views
+    sse = torch.empty(B, truth.num_configurations, V, dtype=torch.float64)
     for v in range(V):
-        x = np.stack([colour_units(c[v]).reshape(-1) for c in rgbs])  # (B, 3P), 16-bit units
-        m = truth.mask[v].astype(np.float64)  # (G, P)
-        y = truth.masked_rgb[v].astype(np.float64)  # (G, 3P), 8-bit units, zero where masked out
-        x2 = (x * x).reshape(B, -1, 3).sum(-1)  # (B, P)
-        y2 = (y * y).sum(1)  # (G,)
-        sse[:, :, v] = x2 @ m.T - (2 * _FROM_8BIT) * (x @ y.T) + _FROM_8BIT**2 * y2
-        count[:, v] = m.sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mse = np.maximum(sse, 0.0) / (UNIT**2 * 3 * count)  # 0 / 0 = NaN for an empty mask
-    return M.psnr_from_mse(mse)
+        x = torch.from_numpy(np.stack([colour_units(c[v]).reshape(-1) for c in rgbs]))  # (B, 3P), 16-bit units
+        m = torch.from_numpy(truth.mask[v]).double()  # (G, P)
+        y = torch.from_numpy(truth.masked_rgb[v]).double()  # (G, 3P), 8-bit units, zero where masked out
+        sq = x.square().reshape(B, -1, 3)
+        x2 = sq[..., 0] + sq[..., 1] + sq[..., 2]  # (B, P); faster than a strided sum(-1)
+        sse[:, :, v] = x2 @ m.T - (2 * _FROM_8BIT) * (x @ y.T) + _FROM_8BIT**2 * torch.from_numpy(y2[v])
+    mse = sse.clamp_min(0.0) / torch.from_numpy(UNIT**2 * 3 * count.T)  # 0 / 0 = NaN for an empty mask
+    return M.psnr_from_mse(mse).numpy()
 
 
 # Set in the parent before forking workers, so that they inherit it instead of unpickling it.
 _JOB: dict[str, Any] = {}
 
 
-def _score_chunk(start: int, stop: int) -> np.ndarray:
-    """PSNR ``(B, G, V)`` of candidates ``start..stop-1`` (each read, checked and dropped)."""
+def _read_chunk(start: int, stop: int) -> list[np.ndarray]:
+    """Colours of candidates ``start..stop-1``, each read and checked whole (depth and ids are dropped)."""
     source: CandidateSource = _JOB["source"]
-    return view_psnr([source.load(n).rgb for n in range(start, stop)], _JOB["truth"])
+    return [source.load(n).rgb for n in range(start, stop)]
 
 
-def _chunks(n: int, size: int) -> list[tuple[int, int]]:
-    return [(i, min(i + size, n)) for i in range(0, n, size)]
+def _read_chunks(chunks: list[tuple[int, int]], workers: int) -> Iterator[list[np.ndarray]]:
+    """:func:`_read_chunk` of every chunk, in order (so an error is raised in candidate order).
 
-
-def _run_chunks(chunks: list[tuple[int, int]], workers: int) -> Iterator[np.ndarray]:
-    """Results of :func:`_score_chunk` in chunk order (a worker's error is raised in that order)."""
+    With ``workers`` > 1 the reads run in forked processes (they inherit ``_JOB``; they use no
+    torch, whose OpenMP pool is not fork-safe), at most ``READ_AHEAD`` chunks per worker ahead.
+    """
     if workers <= 1:
-        yield from (_score_chunk(a, b) for a, b in chunks)
+        yield from (_read_chunk(a, b) for a, b in chunks)
         return
-    # Workers run numpy only (torch's OpenMP pool is not fork-safe; numpy's BLAS is).
+    todo = iter(chunks)
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        futures = [pool.submit(_score_chunk, a, b) for a, b in chunks]
+        pending: deque[Future] = deque(pool.submit(_read_chunk, a, b) for a, b in itertools.islice(todo, READ_AHEAD * workers))
         try:
-            for f in futures:
-                yield f.result()
+            while pending:
+                rgbs = pending.popleft().result()
+                pending.extend(pool.submit(_read_chunk, a, b) for a, b in itertools.islice(todo, 1))
+                yield rgbs
         finally:
-            for f in futures:
+            for f in pending:
                 f.cancel()
 
 
@@ -104,19 +116,22 @@ def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progres
     """Mean PSNR ``(N, G)`` over the evaluated views of every candidate against every truth.
 
     Candidates are streamed in chunks (:func:`chunk_size`), each read once; ``workers`` > 1 reads
-    and scores chunks in that many processes with an identical result. A view with an empty mask
-    is left out of a mean (:func:`metrics.best_of_n`'s convention).
+    them in that many processes, with an identical result. A view with an empty mask is left out
+    of a mean (:func:`metrics.best_of_n`'s convention).
     """
     from tqdm import tqdm
 
-    N = len(source.names)
+    if workers > 1 and not getattr(source, "fork_safe", True):
+        raise ValueError("these candidates cannot be loaded in forked processes: score them with workers=1")
+    N, size = len(source.names), chunk_size(len(source.names), truth)
     out = np.empty((N, truth.num_configurations))
-    chunks = _chunks(N, chunk_size(N, truth))
-    _JOB.update(truth=truth, source=source)
+    chunks = [(i, min(i + size, N)) for i in range(0, N, size)]
+    energy = truth_energy(truth)
+    _JOB.update(source=source)
     try:
         with tqdm(total=N, desc="candidates", unit="cand", disable=not progress, dynamic_ncols=True) as bar:
-            for (a, b), table in zip(chunks, _run_chunks(chunks, workers)):
-                out[a:b] = M.best_of_n(table).mean_scores
+            for (a, b), rgbs in zip(chunks, _read_chunks(chunks, workers)):
+                out[a:b] = M.best_of_n(view_psnr(rgbs, truth, energy)).mean_scores
                 bar.update(b - a)
     finally:
         _JOB.clear()

@@ -167,6 +167,8 @@ class PredictionDir:
         self.root = Path(root)
         if not self.root.is_dir():
             raise PredictionError(f"{self.root}: not a directory (expected one sub-directory per candidate)")
+        if (self.root / "rgb").is_dir():
+            raise PredictionError(f"{self.root}: holds rgb/ itself; put each candidate in a sub-directory (PRED/CAND/rgb/NAME.png)")
         self.scene, self.frames = scene, list(frames)
         self.method = read_method(self.root)
         self.names = sorted(e.name for e in os.scandir(self.root) if e.is_dir() and not e.name.startswith("."))
@@ -221,14 +223,16 @@ class MemorySource:
 
     ``loader(n)`` returns candidate n as a :class:`Candidate` on the evaluated views; it may be
     called twice for a candidate that matches a ground truth (the pass, then the full metrics).
+    Only a ``fork_safe`` loader (numpy only: no torch, no GPU) may run in worker processes;
+    otherwise score with one worker, so that the loader runs in the calling process.
     """
 
     def __init__(self, names: Sequence[str], loader: Callable[[int], Candidate], scene: D.Scene,
-                 num_views: int, has_depth: bool = False, has_ids: bool = False) -> None:
+                 num_views: int, has_depth: bool = False, has_ids: bool = False, fork_safe: bool = False) -> None:
         if not names:
             raise PredictionError("no candidates to score")
         self.names, self.loader, self.scene, self.num_views = list(names), loader, scene, num_views
-        self.has_depth, self.has_ids = has_depth, has_ids
+        self.has_depth, self.has_ids, self.fork_safe = has_depth, has_ids, fork_safe
 
     def __len__(self) -> int:
         return len(self.names)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -125,9 +126,10 @@ def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plot
 
 
 def write_report(res: ScoreResult, out_dir: str | Path, method: dict[str, Any], command: str, dataset: str, predictions: str) -> Path:
-    """Write every output to ``out_dir`` (created); returns the path of ``report.md``."""
-    import time
+    """Write every output to ``out_dir`` (created); returns the path of ``report.md``.
 
+    Adds ``report_s`` and ``total_s`` (the sum of every stage) to ``res.timings``.
+    """
     t0 = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -135,8 +137,8 @@ def write_report(res: ScoreResult, out_dir: str | Path, method: dict[str, Any], 
     np.save(buf, res.matrix)
     D.atomic_write_bytes(out / "psnr_matrix.npy", buf.getvalue())
     plots = write_plots(res, out)
-    D.atomic_write_bytes(out / "report.md", report_markdown(res, method, command, plots).encode())
     res.timings["report_s"] = time.perf_counter() - t0
-    res.timings["total_s"] = sum(v for k, v in res.timings.items() if k != "total_s")  # every stage
+    res.timings["total_s"] = sum(v for k, v in res.timings.items() if k != "total_s")
+    D.atomic_write_bytes(out / "report.md", report_markdown(res, method, command, plots).encode())
     D.atomic_write_json(out / "metrics.json", metrics_json(res, method, command, dataset, predictions))
     return out / "report.md"

@@ -58,13 +58,13 @@ def match_metrics(
     """Means over views of a candidate against one ground truth (without PSNR, which the pass has).
 
     ``rgb (V, H, W, 3)`` uint8, ``depth``/``ids``/``mask`` ``(V, H, W)``: the ground truth and its
-    co-visibility masks. SSIM in float64 (exactly skimage's), LPIPS in float32; SSIMAE only when the
+    co-visibility masks. SSIM and LPIPS in float32 (as ``osn evaluate``); SSIMAE only when the
     candidate has depth, PQ / mIoU (in percent) only when it has ids.
     """
-    pred, ref, m = _to_unit(cand.rgb), torch.from_numpy(rgb / 255.0), torch.from_numpy(mask)
+    pred, ref, m = _to_unit(cand.rgb).float(), torch.from_numpy(rgb / np.float32(255.0)), torch.from_numpy(mask)
     out = {"ssim": _nanmean(M.ssim(pred, ref, m))}
     if with_lpips:
-        out["lpips"] = _nanmean(M.lpips(pred.float(), ref.float(), m))
+        out["lpips"] = _nanmean(M.lpips(pred, ref, m))
     if cand.depth is not None:
         out["ssimae"] = _nanmean(M.ssimae(torch.from_numpy(np.asarray(cand.depth, np.float64)), torch.from_numpy(depth.astype(np.float64)), m))
     if cand.ids is not None:
@@ -97,6 +97,8 @@ def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, worker
     :class:`predictions.PredictionError` before anything is returned); the full metrics are
     computed for the matched candidates only, each loaded once more.
     """
+    from tqdm import tqdm
+
     if with_lpips:
         M.get_model()  # fail on missing LPIPS weights before the long pass, not after it
     timings = {}
@@ -107,12 +109,14 @@ def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, worker
 
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    for n in np.unique(best.indices):
-        cand = source.load(int(n))
-        for g in np.flatnonzero(best.indices == n):
-            rgb, depth, ids = truth.views(int(g))
-            row = {"configuration": int(g), "match": source.names[n], "match_index": int(n), "psnr": float(best.scores[g])}
-            rows.append({**row, **match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips)})
+    with tqdm(total=truth.num_configurations, desc="matched metrics", unit="gt", disable=not progress, dynamic_ncols=True) as bar:
+        for n in np.unique(best.indices):  # each matched candidate is loaded once
+            cand = source.load(int(n))
+            for g in np.flatnonzero(best.indices == n):
+                rgb, depth, ids = truth.views(int(g))
+                row = {"configuration": int(g), "match": source.names[n], "match_index": int(n), "psnr": float(best.scores[g])}
+                rows.append({**row, **match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips)})
+                bar.update()
     rows.sort(key=lambda r: r["configuration"])
     timings["metrics_s"] = time.perf_counter() - t0
     keys = metric_keys(source, with_lpips)

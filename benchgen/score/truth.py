@@ -86,6 +86,10 @@ class Truth:
         rgb, depth, ids = zip(*(D.read_frame(self.root, f.name, g, scene=self.scene) for f in self.frames))
         return np.stack(rgb), np.stack(depth), np.stack(ids)
 
+    def first_views(self, v: int) -> "Truth":
+        """The same ground truths restricted to the first ``v`` evaluated views (no copy)."""
+        return Truth(self.root, self.scene, self.frames[:v], self.scales, self.masked_rgb[:v], self.mask[:v])
+
     def masks(self, g: int) -> np.ndarray:
         """Configuration g's masks ``(V, H, W)`` bool."""
         return self.mask[:, g].reshape(self.num_views, self.scene.height, self.scene.width)

@@ -12,6 +12,7 @@ from osn.cli.demo import add_demo_parser
 from osn.cli.evaluate import add_eval_parsers
 from osn.cli.export import add_export_parser
 from osn.cli.preprocess import add_parsers as add_preprocess_parsers
+from osn.cli.train import add_train_parser
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,8 +24,6 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
 
     add_preprocess_parsers(sub)
-    from osn.cli.train import add_train_parser
-
     add_train_parser(sub)
     add_export_parser(sub)
     add_eval_parsers(sub)

@@ -12,20 +12,36 @@ import argparse
 import logging
 import shlex
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+from scenecore import dataset as D
+from scenecore.atomic import atomic_write_json
 from scenecore.cli import UserError, subcommand
 
+from benchgen.render.generate import generate
+from benchgen.scene.spec import load_preset, spec_from_dict
 from osn.cli.stages import Stage, run_stages
+from osn.cli.train import train_on_dataset
+from osn.evaluate.bestofn import EvalConfig, evaluate
+from osn.evaluate.report import summary_lines, write_report
+from osn.export.addon_build import build_addon_zip
+from osn.export.from_run import export_run
+from osn.model.run import load_run
+from osn.preprocess.inputs import InputsError, load_inputs, save_inputs
+from osn.preprocess.oracle import oracle_inputs
+from osn.preprocess.sfm import PreprocessConfig
+from osn.preprocess.video import preprocess_dataset
+from osn.sample.configurations import Samples, sample_configurations
+from osn.train import TrainConfig, read_metrics
 
 log = logging.getLogger(__name__)
 
 
-def _scaled_config(iterations: int | None, config_file: str | None):
+def _scaled_config(iterations: int | None, config_file: str | None) -> Any:
     """Training config, with every phase length scaled so field iterations total ``iterations``."""
-    from osn.train import TrainConfig
 
     cfg = TrainConfig.from_yaml(config_file) if config_file else TrainConfig()
     if iterations:
@@ -62,127 +78,155 @@ def demo_command(args: argparse.Namespace) -> str:
     return shlex.join(parts)
 
 
+@dataclass(frozen=True)
+class DemoPaths:
+    """Where each stage of ``osn demo`` writes, under ``--work``."""
+
+    work: Path
+
+    @property
+    def dataset(self) -> Path:
+        return self.work / "dataset"
+
+    @property
+    def sfm(self) -> Path:
+        return self.work / "sfm"
+
+    @property
+    def oracle(self) -> Path:
+        return self.work / "oracle"
+
+    @property
+    def run(self) -> Path:
+        return self.work / "run"
+
+    @property
+    def report(self) -> Path:
+        return self.work / "report"
+
+    @property
+    def export(self) -> Path:
+        return self.work / "export"
+
+
+# Each stage is a function of the options and the paths, run by osn.cli.stages (skip when done,
+# refuse changed options).
+
+
+def stage_generate(args: argparse.Namespace, p: DemoPaths) -> dict:
+    """Render the benchmark (the preset with the demo's resolution/configs overrides)."""
+
+    spec = load_preset(args.preset)
+    if args.resolution or args.configs:
+        d = spec.to_dict()
+        if args.resolution:
+            d["resolution"] = [args.resolution, args.resolution]
+        if args.configs:
+            d["configs"] = args.configs
+        spec = spec_from_dict(d, f"{args.preset} (demo overrides)")
+    s = generate(spec, p.dataset, workers=args.workers, progress=True)
+    if not s.passed:
+        raise UserError(f"{p.dataset}: the generated benchmark failed its invariance verification (see verification.json)")
+    for line in s.lines():
+        print(f"  {line}")
+    return {"frames_rendered": s.frames_rendered, "render_seconds": s.render_seconds}
+
+
+def _sfm_lines(objects: list[dict]) -> list[str]:
+    out = []
+    for r in objects:
+        if "error" in r:
+            out.append(f"SfM dropped object {r['id']} ({r['name']}): {r['error']}")
+        elif "rotation_error_deg_max" in r:
+            out.append(f"SfM object {r['id']} ({r['name']}): {100 * r['registered_fraction']:.0f}% of frames, "
+                       f"rotation error max {r['rotation_error_deg_max']:.2f} deg")
+    return out
+
+
+def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
+    """Oracle inputs (ablation) and per-object SfM; an SfM failure is a result unless SfM trains."""
+
+    video = D.read_training_video(p.dataset, D.load_scene(p.dataset))  # read once for both
+    save_inputs(p.oracle, oracle_inputs(p.dataset, video=video))
+    try:
+        inputs, report = preprocess_dataset(p.dataset, PreprocessConfig(on_failure="skip"),
+                                            progress=lambda m: print(f"  {m} ...", flush=True), video=video)
+    except InputsError as e:
+        if args.inputs == "colmap":
+            raise
+        print(f"  SfM failed: {e}")
+        return {"sfm_error": str(e)}
+    save_inputs(p.sfm, inputs)
+    atomic_write_json(p.sfm / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped})
+    for line in _sfm_lines(report.objects):
+        print(f"  {line}")
+    return {"objects": report.objects, "dropped": report.dropped}
+
+
+def stage_train(args: argparse.Namespace, p: DemoPaths, cfg: Any) -> dict:
+    """Train (or resume) on the chosen inputs, monitored against the dataset's exact region."""
+
+    resume = (p.run / "checkpoint.pt").exists()
+    inputs = None if resume else load_inputs(p.sfm if args.inputs == "colmap" else p.oracle)
+    train_on_dataset(p.dataset, p.run, cfg, inputs=inputs, resume=resume)
+    last = read_metrics(p.run / "metrics.jsonl")[-1]
+    print(f"  training: PSNR {last.get('psnr', float('nan')):.2f} dB, valid-set IoU {last.get('iou', float('nan')):.3f} "
+          f"after {last['wall_time']:.0f} s")
+    return {k: last.get(k) for k in ("psnr", "iou", "wall_time", "iteration")}
+
+
+def stage_sample(args: argparse.Namespace, p: DemoPaths) -> dict:
+    """Draw N configurations from the scale network (no ground truth)."""
+
+    s = sample_configurations(load_run(p.run), args.n, args.threshold, args.seed)
+    s.save(p.run / "samples.npz")
+    return {"n": len(s.sbar), "fell_back": s.fell_back}
+
+
+def stage_evaluate(args: argparse.Namespace, p: DemoPaths) -> dict:
+    """Best of N against every ground truth, the report and its plots."""
+
+    res = evaluate(load_run(p.run), p.dataset, Samples.load(p.run / "samples.npz"), EvalConfig(max_views=args.max_views))
+    write_report(res, p.report, p.run, demo_command(args))
+    return {"table": res.table, "valid_set": res.valid_set, "scale_error": res.scale_error}
+
+
+def stage_export(args: argparse.Namespace, p: DemoPaths) -> dict:
+    """Export the sampled configurations and the dataset's test cameras for Blender."""
+
+    export_run(p.run, p.export, dataset=p.dataset)
+    return {}
+
+
+def stage_addon(args: argparse.Namespace, p: DemoPaths) -> dict:
+    """Build the Blender extension zip next to the outputs."""
+
+    return {"zip": str(build_addon_zip(p.work))}
+
+
 def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     """Run (or resume) every stage under ``args.work``; returns the stage records."""
-    work = Path(args.work)
-    dataset, sfm, oracle_dir, run_dir = work / "dataset", work / "sfm", work / "oracle", work / "run"
-    report_dir, export_dir = work / "report", work / "export"
+    p = DemoPaths(Path(args.work))
     train_cfg = _scaled_config(args.iterations, args.train_config)  # also what the train stage depends on
-
-    def generate() -> dict:
-        from benchgen.render.generate import generate as gen
-        from benchgen.scene.spec import load_preset, spec_from_dict
-
-        spec = load_preset(args.preset)
-        if args.resolution or args.configs:
-            d = spec.to_dict()
-            if args.resolution:
-                d["resolution"] = [args.resolution, args.resolution]
-            if args.configs:
-                d["configs"] = args.configs
-            spec = spec_from_dict(d, f"{args.preset} (demo overrides)")
-        s = gen(spec, dataset, workers=args.workers, progress=True)
-        if not s.passed:
-            raise UserError(f"{dataset}: the generated benchmark failed its invariance verification (see verification.json)")
-        for line in s.lines():
-            print(f"  {line}")
-        return {"frames_rendered": s.frames_rendered, "render_seconds": s.render_seconds}
-
-    def preprocess() -> dict:
-        from scenecore import dataset as D
-        from scenecore.dataset import atomic_write_json
-
-        from osn.preprocess.inputs import InputsError, save_inputs
-        from osn.preprocess.oracle import oracle_inputs
-        from osn.preprocess.sfm import PreprocessConfig
-        from osn.preprocess.video import preprocess_dataset
-
-        video = D.read_training_video(dataset, D.load_scene(dataset))  # read once for both
-        save_inputs(oracle_dir, oracle_inputs(dataset, video=video))
-        try:
-            inputs, report = preprocess_dataset(dataset, PreprocessConfig(on_failure="skip"),
-                                                progress=lambda m: print(f"  {m} ...", flush=True), video=video)
-        except InputsError as e:
-            if args.inputs == "colmap":
-                raise
-            # The oracle path goes on; the SfM failure is part of the result.
-            print(f"  SfM failed: {e}")
-            return {"sfm_error": str(e)}
-        save_inputs(sfm, inputs)
-        atomic_write_json(sfm / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped})
-        for r in report.objects:
-            if "error" in r:
-                print(f"  SfM dropped object {r['id']} ({r['name']}): {r['error']}")
-            elif "rotation_error_deg_max" in r:
-                print(f"  SfM object {r['id']} ({r['name']}): {100 * r['registered_fraction']:.0f}% of frames, "
-                      f"rotation error max {r['rotation_error_deg_max']:.2f} deg")
-        return {"objects": report.objects, "dropped": report.dropped}
-
-    def train() -> dict:
-        from osn.preprocess.inputs import load_inputs
-        from osn.cli.train import train_on_dataset
-        from osn.train import read_metrics
-
-        resume = (run_dir / "checkpoint.pt").exists()
-        inputs = None if resume else load_inputs(sfm if args.inputs == "colmap" else oracle_dir)
-        train_on_dataset(dataset, run_dir, train_cfg, inputs=inputs, resume=resume)  # measured against its exact region
-        last = read_metrics(run_dir / "metrics.jsonl")[-1]
-        print(f"  training: PSNR {last.get('psnr', float('nan')):.2f} dB, valid-set IoU {last.get('iou', float('nan')):.3f} "
-              f"after {last['wall_time']:.0f} s")
-        return {k: last.get(k) for k in ("psnr", "iou", "wall_time", "iteration")}
-
-    def sample() -> dict:
-        from osn.model.run import load_run
-        from osn.sample.configurations import sample_configurations
-
-        s = sample_configurations(load_run(run_dir), args.n, args.threshold, args.seed)
-        s.save(run_dir / "samples.npz")
-        return {"n": len(s.sbar), "fell_back": s.fell_back}
-
-    def evaluate() -> dict:
-        from osn.evaluate.bestofn import EvalConfig
-        from osn.evaluate.bestofn import evaluate as ev
-        from osn.evaluate.report import write_report
-        from osn.model.run import load_run
-        from osn.sample.configurations import Samples
-
-        run = load_run(run_dir)
-        res = ev(run, dataset, Samples.load(run_dir / "samples.npz"), EvalConfig(max_views=args.max_views))
-        write_report(res, report_dir, run_dir, demo_command(args))
-        return {"table": res.table, "valid_set": res.valid_set, "scale_error": res.scale_error}
-
-    def export() -> dict:
-        from osn.export.from_run import export_run
-
-        # the configurations the sample stage drew and evaluated, and the dataset's test cameras
-        export_run(run_dir, export_dir, dataset=dataset)
-        return {}
-
-    def addon() -> dict:
-        from osn.export.addon_build import build_addon_zip
-
-        z = build_addon_zip(work)
-        return {"zip": str(z)}
-
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
     stages = [
-        Stage("generate", f"benchgen: render the {args.preset} benchmark", generate,
+        Stage("generate", f"benchgen: render the {args.preset} benchmark", partial(stage_generate, args, p),
               {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}),
-        Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", preprocess),
-        Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs", train,
-              {"inputs": args.inputs, **train_options}),
-        Stage("sample", f"draw {args.n} valid configurations", sample,
+        Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p)),
+        Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",
+              partial(stage_train, args, p, train_cfg), {"inputs": args.inputs, **train_options}),
+        Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
               {"n": args.n, "threshold": args.threshold, "seed": args.seed}),
-        Stage("evaluate", "best-of-N evaluation against every ground truth", evaluate, {"max_views": args.max_views}),
-        Stage("export", "export volumes, meshes, trajectories and the scale network", export),
-        Stage("addon", "build the Blender add-on zip", addon),
+        Stage("evaluate", "best-of-N evaluation against every ground truth", partial(stage_evaluate, args, p),
+              {"max_views": args.max_views}),
+        Stage("export", "export volumes, meshes, trajectories and the scale network", partial(stage_export, args, p)),
+        Stage("addon", "build the Blender add-on zip", partial(stage_addon, args, p)),
     ]
-    return run_stages(stages, work)
+    return run_stages(stages, p.work)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from osn.evaluate.report import summary_lines
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     t0 = time.perf_counter()

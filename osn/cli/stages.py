@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from scenecore.dataset import atomic_write_json
+from scenecore.cli import UserError
 
 
 @dataclass
@@ -38,8 +39,6 @@ def run_stages(stages: list[Stage], workdir: str | Path, echo: Callable[[str], N
     Raises:
         UserError: a stage was started or finished with other values of its options.
     """
-    from scenecore.cli import UserError
-
     work = Path(workdir)
     done_dir = work / ".done"
     done_dir.mkdir(parents=True, exist_ok=True)

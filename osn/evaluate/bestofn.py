@@ -1,15 +1,19 @@
 """Honest best-of-N evaluation (``osn evaluate``) of sampled configurations against many ground truths.
 
 :func:`evaluate` matches each ground-truth configuration g of a benchgen dataset to the best of
-the N samples by mean PSNR over g's test views, then reports PSNR / SSIM / LPIPS / SSIMAE / PQ /
-mIoU of the matches (mean and std over the G ground truths, as the paper's Table 2), the same
-metrics for two single-solution baselines of the same model, the relative scale error, the
-learned valid set against the exact region, and curves.
+the samples by mean PSNR over g's co-visible test views, and reports PSNR / SSIM / LPIPS /
+SSIMAE / PQ / mIoU of the matches (mean and std over the G ground truths, the paper's Table 2),
+the same metrics for two single-solution baselines of the same model, the relative scale error,
+the learned valid set against the exact region, and curves.
 
-Speed (N = 1000 samples x G = 50 ground truths): the layered search
-(:mod:`osn.evaluate.layered`) approximates all N x G PSNRs; only the ``topk`` best candidates of
-each ground truth are then rendered exactly (composite volume rendering,
-:mod:`osn.evaluate.exact`) to decide the match and to compute the reported metrics.
+Every reported image metric is an exact score of rendered candidates by the benchmark's own
+scorer (:func:`benchgen.score.scorer.score`, the one owner of best of N and of the metrics), the
+same code that scores any method's renders with ``benchgen score``. Rendering all N = 1000
+samples exactly would dominate the run time, so a pre-selection chooses which samples to render:
+the layered search (:mod:`osn.evaluate.layered`) estimates all N x G PSNRs and the ``topk`` best
+samples of every ground truth (plus the highest-scoring one) become the candidates. The match is
+the best *rendered* candidate; ``benchmarks/bench_bestofn.py`` measures how far that is from
+scoring all N exactly.
 """
 
 from __future__ import annotations
@@ -23,8 +27,9 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore.config import flag, integer, validate
-from osn.evaluate.exact import exact_psnr, full_metrics, mean_std, render_sample
-from osn.evaluate.ground_truth import GroundTruth, load_ground_truth
+from benchgen.score.scorer import ScoreResult, score
+from benchgen.score.truth import Truth, load_truth
+from osn.evaluate.exact import candidate_source
 from osn.evaluate.layered import layered_psnr
 from osn.evaluate.units import actual_scales, ground_truth_problem
 from osn.evaluate.valid_set import ground_truth_outside_box, valid_set_accuracy, widest_object_profile
@@ -92,6 +97,34 @@ def relative_scale_errors(actual: np.ndarray, true: np.ndarray, ids: list[int], 
     return [float(v) for v in np.mean(np.abs(actual[:, free] - t) / t, axis=1)]
 
 
+def sample_name(n: int) -> str:
+    """The candidate name of sample ``n`` (its index in ``samples.npz``)."""
+    return f"sample_{n:05d}"
+
+
+def preselect(approx_mean: np.ndarray, scores: np.ndarray, topk: int) -> np.ndarray:
+    """Samples to render exactly: the ``topk`` best of every ground truth by the estimate
+    ``approx_mean (N, G)``, plus the highest-scoring sample; sorted indices ``(C,)``."""
+    top = np.argsort(-np.nan_to_num(approx_mean, nan=-np.inf), axis=0, kind="stable")[:topk].reshape(-1)
+    return np.unique(np.concatenate([top, [int(np.argmax(scores))]]))
+
+
+def _table_row(res: ScoreResult) -> dict[str, list[float]]:
+    """A scorer summary as the report's ``metric -> [mean, std]``."""
+    return {k: [v["mean"], v["std"]] for k, v in res.summary.items()}
+
+
+def single_solution_rows(run: TrainedRun, truth: Truth, samples: Samples, with_lpips: bool) -> dict[str, dict[str, list[float]]]:
+    """The two baselines that commit to one solution of the same model, each scored as the only
+    candidate against all G ground truths: the highest-scoring sample and the centre of the
+    learned ranges (the middle of each object's span over the valid samples)."""
+    centre = 0.5 * (samples.sbar.min(0) + samples.sbar.max(0))
+    rows = {}
+    for name, sbar in (("highest score", samples.sbar[int(np.argmax(samples.score))]), ("centre of learned ranges", centre)):
+        rows[name] = _table_row(score(truth, candidate_source(run, truth, {name: sbar}), with_lpips))
+    return rows
+
+
 def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print) -> EvalResult:
     """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset."""
     problem = ground_truth_problem(run.inputs)
@@ -99,113 +132,79 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
         raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    gt = load_ground_truth(dataset_root, cfg.max_views)
-    region = D.load_valid_region(dataset_root, gt.scene.num_objects)
-    G, V = gt.rgb.shape[:2]
+    truth = load_truth(dataset_root, cfg.max_views)
+    region = D.load_valid_region(dataset_root, truth.scene.num_objects)
+    G, V = truth.num_configurations, truth.num_views
     timings["ground_truth_s"] = time.perf_counter() - t0
     echo(f"evaluate: {len(samples.sbar)} samples x {G} ground truths x {V} views")
 
     t0 = time.perf_counter()
-    approx_mean = np.nanmean(layered_psnr(run, samples, gt, cfg.levels, echo=echo), axis=2)  # (N, G)
+    approx_mean = np.nanmean(layered_psnr(run, samples, truth, cfg.levels, echo=echo), axis=2)  # (N, G)
     timings["layered_search_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    match, cand, renders = exact_rerank(run, gt, samples, approx_mean, cfg.topk)
-    timings["exact_rerank_s"] = time.perf_counter() - t0
-    approx_match = np.nanargmax(np.nan_to_num(approx_mean, nan=-np.inf), axis=0)
+    cand = preselect(approx_mean, samples.score, cfg.topk)
+    res = score(truth, candidate_source(run, truth, {sample_name(int(n)): samples.sbar[n] for n in cand}), cfg.lpips, progress=True)
+    match = cand[[r["match_index"] for r in res.per_ground_truth]]
+    timings["exact_scoring_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    per_gt, table = score_matches(run, gt, samples, match, renders, approx_mean, cfg.lpips)
-    timings["metrics_s"] = time.perf_counter() - t0
+    table = {f"best of {len(samples.sbar)}": _table_row(res), **single_solution_rows(run, truth, samples, cfg.lpips)}
+    timings["baselines_s"] = time.perf_counter() - t0
+    per_gt = [{**{k: v for k, v in r.items() if k not in ("match", "match_index", "configuration")},
+               "sample": int(n), "approx_psnr": float(approx_mean[n, g])} for g, (r, n) in enumerate(zip(res.per_ground_truth, match))]
 
     # Relative scale error of the matched samples (non-anchor objects, dataset scales); the units
     # it needs were checked above (ground_truth_problem).
     actual = actual_scales(run.inputs, samples.sbar[match])
-    scale_err = relative_scale_errors(actual, gt.scales, [o.id for o in run.inputs.objects], gt.scene.anchor_id)
+    scale_err = relative_scale_errors(actual, truth.scales, [o.id for o in run.inputs.objects], truth.scene.anchor_id)
     valid = valid_set_accuracy(run, region, cfg.grid, cfg.seed)
-    curves = evaluation_curves(run, samples, gt, approx_mean, cfg.levels)
-    curves["validity_profile"] = widest_object_profile(run, region, gt.scales)
+    curves = evaluation_curves(run, samples, truth, res.matrix, cand, cfg.levels)
+    curves["validity_profile"] = widest_object_profile(run, region, truth.scales)
+    approx_match = np.nanargmax(np.nan_to_num(approx_mean, nan=-np.inf), axis=0)
     extra = {
         "num_samples": int(len(samples.sbar)),
         "num_gt": G,
         "num_views": V,
-        "views": [f.name for f in gt.frames],
-        "covisible_fraction": float(gt.mask.mean()),
+        "views": [f.name for f in truth.frames],
+        "covisible_fraction": float(truth.mask.mean()),
         "candidates_rendered_exactly": int(len(cand)),
         "approx_match_agrees": float(np.mean(approx_match == match)),
         "sample_fallbacks": samples.fell_back,
-        **ground_truth_outside_box(run, gt.scales),
+        **ground_truth_outside_box(run, truth.scales),
     }
     return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra)
 
 
-def exact_rerank(
-    run: TrainedRun, gt: GroundTruth, samples: Samples, approx_mean: np.ndarray, topk: int
-) -> tuple[np.ndarray, np.ndarray, dict[int, dict[str, np.ndarray]]]:
-    """Render the ``topk`` candidates of every ground truth by ``approx_mean (N, G)`` exactly and
-    match each ground truth to the best of them by exact mean PSNR.
+def evaluation_curves(
+    run: TrainedRun, samples: Samples, truth: Truth, exact: np.ndarray, cand: np.ndarray, levels: int
+) -> dict[str, Any]:
+    """Best PSNR against N and against the number of ground truths (paper appendix), and the
+    layered search's seconds per view against N (measured here).
 
-    Returns the matched sample per ground truth ``(G,)``, the candidates rendered ``(C,)`` and
-    their renders (:func:`osn.evaluate.exact.render_sample`) by sample index.
+    ``exact (C, G)`` holds the exact mean PSNRs of the rendered candidates ``cand (C,)`` (sample
+    indices): the best of the first n samples is taken over the rendered ones among them, an
+    exact score of a rendered candidate and a lower bound of the best of all first n samples.
     """
-    from tqdm import tqdm
-
-    G = approx_mean.shape[1]
-    # The highest-scoring sample is always a candidate: best of N can then never lose to it.
-    best_score = int(np.argmax(samples.score))
-    top = np.argsort(-np.nan_to_num(approx_mean, nan=-np.inf), axis=0)[:topk].reshape(-1)
-    cand = np.unique(np.concatenate([top, [best_score]]))
-    renders: dict[int, dict[str, np.ndarray]] = {}
-    exact: dict[int, np.ndarray] = {}
-    for n in tqdm(cand.tolist(), desc="exact re-rank", dynamic_ncols=True):
-        renders[n] = render_sample(run, gt, samples.sbar[n])
-        exact[n] = np.nanmean(exact_psnr(renders[n], gt), axis=1)  # (G,)
-    match = np.array([max(cand, key=lambda n: exact[n][g]) for g in range(G)])
-    return match, cand, renders
-
-
-def score_matches(
-    run: TrainedRun, gt: GroundTruth, samples: Samples, match: np.ndarray, renders: dict[int, dict[str, np.ndarray]],
-    approx_mean: np.ndarray, with_lpips: bool,
-) -> tuple[list[dict[str, Any]], dict[str, dict[str, list[float]]]]:
-    """Metrics of the matched samples per ground truth, and the results table: best of N next to
-    the two single-solution baselines (highest score, centre of the learned ranges)."""
-    G = gt.rgb.shape[0]
-    per_gt = []
-    for g in range(G):
-        row = full_metrics(renders[int(match[g])], gt, g, with_lpips)
-        row.update(sample=int(match[g]), approx_psnr=float(approx_mean[match[g], g]))
-        per_gt.append(row)
-    # Centre of the learned ranges: the middle of each object's span over the valid samples.
-    centre = 0.5 * (samples.sbar.min(0) + samples.sbar.max(0))
-    baselines = {}
-    for name, sbar in (("highest score", samples.sbar[int(np.argmax(samples.score))]), ("centre of learned ranges", centre)):
-        r = render_sample(run, gt, sbar)
-        baselines[name] = mean_std([full_metrics(r, gt, g, with_lpips) for g in range(G)])
-    table = {f"best of {len(samples.sbar)}": mean_std([{k: v for k, v in r.items() if k not in ("sample", "approx_psnr")} for r in per_gt])}
-    table.update(baselines)
-    return per_gt, table
-
-
-def evaluation_curves(run: TrainedRun, samples: Samples, gt: GroundTruth, approx_mean: np.ndarray, levels: int) -> dict[str, Any]:
-    """Best PSNR against N and against the number of ground truths (paper appendix) from
-    ``approx_mean (N, G)``, and the layered search's seconds per view against N (measured here)."""
-    N, G = approx_mean.shape
+    N, G = len(samples.sbar), exact.shape[1]
     Ns = [n for n in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000) if n <= N]
     if N not in Ns:
         Ns.append(N)
-    best_vs_n = [float(np.nanmean(np.nanmax(approx_mean[:n], axis=0))) for n in Ns]
+    best_vs_n = []
+    for n in Ns:
+        inside = cand < n
+        best_vs_n.append(float(np.nanmean(np.nanmax(exact[inside], axis=0))) if inside.any() else float("nan"))
     Gs = list(range(1, G + 1))
-    overall_vs_g = [float(np.nanmean(np.nanmax(approx_mean[:, :m], axis=1))) for m in Gs]
+    overall_vs_g = [float(np.nanmean(np.nanmax(exact[:, :m], axis=1))) for m in Gs]
     timing_vs_n = {}
-    one = gt.first_views(1)
+    one = truth.first_views(1)
     for n in [x for x in (10, 100, 1000) if x <= N]:
         ta = time.perf_counter()
         sub = Samples(samples.s_free[:n], samples.sbar[:n], samples.score[:n], samples.threshold, samples.seed)
         layered_psnr(run, sub, one, levels)
         timing_vs_n[n] = time.perf_counter() - ta
     return {
-        "best_psnr_vs_n": {"n": Ns, "psnr": best_vs_n},
+        "best_psnr_vs_n": {"n": Ns, "psnr": best_vs_n, "basis": "exact PSNR of the pre-selected rendered candidates"},
         "overall_psnr_vs_num_gt": {"num_gt": Gs, "psnr": overall_vs_g},
         "search_seconds_per_view_vs_n": {str(k): v for k, v in timing_vs_n.items()},
     }

@@ -1,55 +1,40 @@
-"""Exact renders of one configuration on the evaluated views, and its image metrics against ground truth."""
+"""Exact renders of sampled configurations on the evaluated test views, as scoring candidates."""
 
 from __future__ import annotations
 
-import numpy as np
-import torch
+from typing import Sequence
 
-from benchgen.score import metrics as M
-from osn.evaluate.ground_truth import GroundTruth
+import numpy as np
+
+from scenecore import dataset as D
+from benchgen.score.predictions import Candidate, MemorySource
+from benchgen.score.truth import Truth
 from osn.model.run import TrainedRun
 
 
-def render_sample(run: TrainedRun, gt: GroundTruth, sbar: np.ndarray) -> dict[str, np.ndarray]:
-    """Exact composite renders of one configuration on every evaluated view: rgb/depth/ids/acc ``(V, ...)``."""
-    views = [run.render_view(f.camera_to_world, f.time_index, sbar) for f in gt.frames]
-    return {k: np.stack([r[k] for r in views]) for k in ("rgb", "depth", "ids", "acc")}
+def render_candidate(run: TrainedRun, frames: Sequence[D.Frame], sbar: np.ndarray) -> Candidate:
+    """Composite volume renders of configuration ``sbar (K,)`` on ``frames``.
+
+    Returns a :class:`benchgen.score.predictions.Candidate`: ``rgb (V, H, W, 3)`` float in [0, 1],
+    ``depth (V, H, W)`` planar (``+inf`` where nothing is hit), ``ids (V, H, W)`` uint8.
+    """
+    views = [run.render_view(f.camera_to_world, f.time_index, sbar) for f in frames]
+    rgb = np.clip(np.stack([v["rgb"] for v in views]), 0.0, 1.0)
+    return Candidate(rgb=rgb, depth=np.stack([v["depth"] for v in views]), ids=np.stack([v["ids"] for v in views]).astype(np.uint8))
 
 
-def exact_psnr(render: dict[str, np.ndarray], gt: GroundTruth) -> np.ndarray:
-    """PSNR ``(G, V)`` of one exactly rendered sample against every ground truth."""
-    G, V = gt.rgb.shape[:2]
-    out = np.empty((G, V))
-    pred = torch.from_numpy(render["rgb"]).double()
-    for g in range(G):
-        out[g] = np.asarray(M.psnr(pred, torch.from_numpy(gt.rgb[g]).double() / 255.0, torch.from_numpy(gt.mask[g])))
-    return out
+def candidate_source(run: TrainedRun, truth: Truth, configurations: dict[str, np.ndarray]) -> MemorySource:
+    """The named configurations (``name -> sbar (K,)``) as candidates rendered on demand.
 
+    Each candidate is rendered when the scorer asks for it and cached, so a matched candidate
+    is rendered once although the scorer loads it twice (the pass, then the full metrics).
+    """
+    names = list(configurations)
+    cache: dict[int, Candidate] = {}
 
-def full_metrics(render: dict[str, np.ndarray], gt: GroundTruth, g: int, with_lpips: bool) -> dict[str, float]:
-    """All image metrics of a rendered sample against ground truth g (means over its views)."""
-    pred = torch.from_numpy(render["rgb"]).float()
-    ref = torch.from_numpy(gt.rgb[g]).float() / 255.0
-    mask = torch.from_numpy(gt.mask[g])
-    out = {
-        "psnr": float(np.nanmean(np.asarray(M.psnr(pred, ref, mask)))),
-        "ssim": float(np.nanmean(np.asarray(M.ssim(pred, ref, mask)))),
-        "ssimae": float(np.nanmean(np.asarray(M.ssimae(torch.from_numpy(render["depth"]).float(),
-                                                        torch.from_numpy(gt.depth[g]).float(), mask)))),
-    }
-    if with_lpips:
-        out["lpips"] = float(np.nanmean(np.asarray(M.lpips(pred, ref, mask))))
-    pq, miou = [], []
-    for v in range(len(gt.frames)):
-        s = M.segmentation_scores(render["ids"][v], gt.ids[g, v], gt.mask[g, v])
-        pq.append(s.pq)
-        miou.append(s.miou)
-    out["pq"] = float(np.nanmean(pq)) * 100.0
-    out["miou"] = float(np.nanmean(miou)) * 100.0
-    return out
+    def load(i: int) -> Candidate:
+        if i not in cache:
+            cache[i] = render_candidate(run, truth.frames, configurations[names[i]])
+        return cache[i]
 
-
-def mean_std(rows: list[dict[str, float]]) -> dict[str, list[float]]:
-    """Per metric of ``rows`` (one per ground truth): ``[mean, std]`` ignoring NaN."""
-    keys = rows[0].keys() if rows else []
-    return {k: [float(np.nanmean([r[k] for r in rows])), float(np.nanstd([r[k] for r in rows]))] for k in keys}
+    return MemorySource(names, load, truth.scene, truth.num_views, has_depth=True, has_ids=True)

@@ -164,7 +164,11 @@ def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
 
 def _openvdb() -> Any:
     """bpy's bundled OpenVDB (the only OpenVDB Python module pip can provide here)."""
-    import bpy  # noqa: F401 - heavy; only the VDB writer needs it
+    try:
+        import bpy  # noqa: F401 - heavy, and the optional [render] extra; only the VDB writer needs it
+    except ImportError:
+        raise ValueError("writing OpenVDB volumes needs bpy's bundled OpenVDB: install the render extra "
+                         "(pip install -e '.[render]', Python 3.11)") from None
 
     bpy.utils.expose_bundled_modules()
     import openvdb  # type: ignore[import-not-found]

@@ -19,7 +19,6 @@ from benchgen.score.bestofn import psnr_matrix, view_psnr
 from benchgen.score.predictions import Candidate, MemorySource, PredictionDir, PredictionError
 from benchgen.score.pngread import decode_rgb
 from benchgen.score.truth import load_truth
-from osn.evaluate.ground_truth import load_ground_truth
 
 
 def write_png(path: Path, img: np.ndarray, filters: tuple[int, ...] = (0,)) -> None:
@@ -94,12 +93,12 @@ def test_single_candidate_against_reference_psnr(tiny_dataset, tmp_path):
     assert run(pred, tiny_dataset, tmp_path / "out", "--no-lpips") == 0
     m = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert [r["match"] for r in m["per_ground_truth"]] == ["only"] * 3 and "lpips" not in m["summary"]
-    gt = load_ground_truth(tiny_dataset)
-    cand = np.stack([D.read_rgb(pred / "only" / "rgb" / f"{f.name}.png") for f in gt.frames]) / 255.0
+    truth = load_truth(tiny_dataset)
+    cand = np.stack([D.read_rgb(pred / "only" / "rgb" / f"{f.name}.png") for f in truth.frames]) / 255.0
     for g, r in enumerate(m["per_ground_truth"]):
-        ref = float(np.nanmean(M.psnr(cand, gt.rgb[g] / 255.0, gt.mask[g])))
-        assert r["psnr"] == pytest.approx(ref, rel=1e-12)
-        assert r["ssim"] == pytest.approx(float(np.nanmean(M.ssim(cand, gt.rgb[g] / 255.0, gt.mask[g]))), rel=1e-12)
+        gt = truth.views(g)[0] / 255.0
+        assert r["psnr"] == pytest.approx(float(np.nanmean(M.psnr(cand, gt, truth.masks(g)))), rel=1e-12)
+        assert r["ssim"] == pytest.approx(float(np.nanmean(M.ssim(cand, gt, truth.masks(g)))), rel=1e-5)
     assert np.load(tmp_path / "out" / "psnr_matrix.npy")[0, 1] > m["per_ground_truth"][0]["psnr"]
 
 
@@ -145,7 +144,7 @@ def test_bad_prediction_is_one_line_exit_2_no_report(tiny_dataset, tmp_path, cap
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("case", ["empty PRED", "PRED not a directory", "DATASET not a dataset"])
+@pytest.mark.parametrize("case", ["empty PRED", "PRED not a directory", "PRED is one candidate", "DATASET not a dataset"])
 def test_bad_arguments_are_one_line_exit_2(tiny_dataset, tmp_path, capsys, case):
     pred, data = tmp_path / "pred", tiny_dataset
     if case == "empty PRED":
@@ -153,6 +152,8 @@ def test_bad_arguments_are_one_line_exit_2(tiny_dataset, tmp_path, capsys, case)
         (pred / "method.json").write_text("{}")
     elif case == "PRED not a directory":
         pred.write_text("x")
+    elif case == "PRED is one candidate":
+        pred = make_pred(tiny_dataset, pred, {"a": 0}) / "a"
     else:
         make_pred(tiny_dataset, pred, {"a": 0})
         data = tmp_path / "not_a_dataset"
@@ -177,6 +178,7 @@ def _perturbed_pred(dataset: Path, root: Path, n: int) -> Path:
 def test_workers_give_identical_results(tiny_dataset, tmp_path):
     pred = _perturbed_pred(tiny_dataset, tmp_path / "pred", 9)
     shutil.rmtree(pred / "00")  # configuration 0 is then matched to a noisy copy
+    shutil.copytree(pred / "03", pred / "99")  # an exact tie: the first candidate in name order wins
     for w in (1, 2):
         assert run(pred, tiny_dataset, tmp_path / f"out{w}", "--no-lpips", "--workers", str(w)) == 0
     m1, m2 = (json.loads((tmp_path / f"out{w}" / "metrics.json").read_text()) for w in (1, 2))
@@ -185,13 +187,23 @@ def test_workers_give_identical_results(tiny_dataset, tmp_path):
     assert np.array_equal(np.load(tmp_path / "out1" / "psnr_matrix.npy"), np.load(tmp_path / "out2" / "psnr_matrix.npy"))
 
 
-def test_max_views_and_masks_are_osn_evaluations(tiny_dataset):
+def test_max_views_and_covisibility_masks(tiny_dataset):
+    """K evenly spread views in (time, view) order; masks as metrics.covisibility_mask defines them."""
+    scene = D.load_scene(tiny_dataset)
+    test = sorted(scene.test_frames, key=lambda f: (f.time_index, f.view))
     truth = load_truth(tiny_dataset, max_views=4, workers=2)
-    gt = load_ground_truth(tiny_dataset, max_views=4)
-    assert [f.name for f in truth.frames] == [f.name for f in gt.frames] and len(gt.frames) == 4
-    for g in range(3):
-        assert np.array_equal(truth.masks(g), gt.mask[g])
-        assert np.array_equal(truth.masked_rgb[:, g].reshape(gt.rgb[g].shape), gt.rgb[g] * gt.mask[g][..., None])
+    assert [f.name for f in truth.frames] == [test[i].name for i in (0, 3, 5, 8)]
+    assert np.array_equal(load_truth(tiny_dataset, max_views=4).mask, truth.mask)
+    g, v, f = 2, 1, truth.frames[1]
+    rgb, depth, ids = D.read_frame(tiny_dataset, f.name, g)
+    scales = D.load_configuration(tiny_dataset, g).scales
+    _, t_depth, t_ids = D.read_training_video(tiny_dataset, scene)
+    expected = M.covisibility_mask(
+        depth, scene.intrinsics.matrix(), f.camera_to_world, [M.configured_depth(d, i, scales) for d, i in zip(t_depth, t_ids)],
+        scene.intrinsics.matrix(), np.stack([t.camera_to_world for t in sorted(scene.train_frames, key=lambda t: t.time_index)]),
+        object_ids=np.where(ids == D.NO_OBJECT, 0, ids), object_transforms=M.covisibility_transforms(scene, scales, f.time_index))
+    assert np.array_equal(truth.masks(g)[v], expected) and 0.5 < expected.mean() < 1
+    assert np.array_equal(truth.masked_rgb[v, g].reshape(rgb.shape), rgb * expected[..., None])
 
 
 def test_16_bit_and_rgba_candidates_are_exact(tiny_dataset, tmp_path):
@@ -237,6 +249,21 @@ def test_memory_source_matches_directory(tiny_dataset, tmp_path):
 
     memory = MemorySource(files.names, loader, truth.scene, truth.num_views, has_depth=True, has_ids=True)
     np.testing.assert_allclose(psnr_matrix(truth, memory), expected, rtol=1e-12)
+    with pytest.raises(ValueError, match="workers=1"):  # a loader may use torch, which forked workers must not
+        psnr_matrix(truth, memory, workers=2)
+    memory.fork_safe = True
+    np.testing.assert_allclose(psnr_matrix(truth, memory, workers=2), expected, rtol=1e-12)
     bad = MemorySource(["x"], lambda n: Candidate(np.full((truth.num_views, 32, 32, 3), np.nan)), truth.scene, truth.num_views)
     with pytest.raises(PredictionError, match="x rgb view 0: 3072 non-finite"):
         psnr_matrix(truth, bad)
+
+
+def test_max_views_reads_only_those_views(tiny_dataset, tmp_path, capsys):
+    pred = make_pred(tiny_dataset, tmp_path / "pred", {"a": 0})
+    keep = [f.name for f in load_truth(tiny_dataset, max_views=4).frames]
+    for path in (pred / "a").glob("*/*.*"):
+        if path.stem not in keep:
+            path.unlink()
+    assert run(pred, tiny_dataset, tmp_path / "out", "--no-lpips", "--max-views", "4") == 0
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["views"] == keep
+    assert run(pred, tiny_dataset, tmp_path / "all", "--no-lpips") == 2 and "missing view" in capsys.readouterr().err
