@@ -24,7 +24,7 @@ from benchutil import print_command
 from benchgen.score.scorer import score
 from benchgen.score.truth import load_truth
 from osn.evaluate.bestofn import preselect, sample_name
-from osn.evaluate.exact import candidate_source
+from osn.evaluate.exact import RenderedCandidates
 from osn.evaluate.layered import layered_psnr
 from osn.model.run import load_run
 from osn.sample.configurations import sample_configurations
@@ -50,12 +50,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     approx = np.nanmean(layered_psnr(run, samples, truth, args.levels), axis=2)  # (N, G)
     cand = preselect(approx, samples.score, args.topk)
-    pre = score(truth, candidate_source(run, truth, {sample_name(int(n)): samples.sbar[n] for n in cand}), with_lpips=False)
+    pre = score(truth, RenderedCandidates(run, truth, {sample_name(int(n)): samples.sbar[n] for n in cand}), with_lpips=False)
     t_pre = time.perf_counter() - t0
     pre_pick = cand[[r["match_index"] for r in pre.per_ground_truth]]
 
     t0 = time.perf_counter()
-    full = score(truth, candidate_source(run, truth, {sample_name(n): samples.sbar[n] for n in range(N)}), with_lpips=False,
+    full = score(truth, RenderedCandidates(run, truth, {sample_name(n): samples.sbar[n] for n in range(N)}), with_lpips=False,
                  progress=True)
     t_all = time.perf_counter() - t0
     all_pick = np.array([r["match_index"] for r in full.per_ground_truth])

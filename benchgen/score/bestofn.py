@@ -15,27 +15,23 @@ of chunks in flight and the ``(N, G)`` mean-PSNR matrix; it does not grow with N
 
 from __future__ import annotations
 
-import itertools
 import math
-import multiprocessing
-from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 
 from benchgen.score import metrics as M
+from benchgen.score.parallel import ordered_map
 from benchgen.score.predictions import CandidateSource
 from benchgen.score.truth import Truth
 
 #: Colour unit of the exact error: full-scale 16-bit. 8-bit values v are ``257 v`` (65535 / 255).
 UNIT = 65535.0
 _FROM_8BIT = 257.0
-#: Candidate colour (bytes, as 8-bit) per chunk, and chunks read ahead per worker: bound memory.
+#: Candidate colour (bytes, as 8-bit) per chunk: bounds the memory of the chunks in flight.
 CHUNK_BYTES = 128 * 2**20
 MAX_CHUNK = 64
-READ_AHEAD = 2
 
 
 def colour_units(rgb: np.ndarray) -> np.ndarray:
@@ -80,36 +76,16 @@ def view_psnr(rgbs: Sequence[np.ndarray], truth: Truth, energy: tuple[np.ndarray
     return M.psnr_from_mse(mse).numpy()
 
 
-# Set in the parent before forking workers, so that they inherit it instead of unpickling it.
+# Set before forking workers (:func:`parallel.ordered_map`), so that they inherit it unpickled.
 _JOB: dict[str, Any] = {}
 
 
 def _read_chunk(start: int, stop: int) -> list[np.ndarray]:
-    """Colours of candidates ``start..stop-1``, each read and checked whole (depth and ids are dropped)."""
+    """Colours of candidates ``start..stop-1``, each read and checked whole (depth and ids are dropped).
+
+    Runs in worker processes: no torch here."""
     source: CandidateSource = _JOB["source"]
     return [source.load(n).rgb for n in range(start, stop)]
-
-
-def _read_chunks(chunks: list[tuple[int, int]], workers: int) -> Iterator[list[np.ndarray]]:
-    """:func:`_read_chunk` of every chunk, in order (so an error is raised in candidate order).
-
-    With ``workers`` > 1 the reads run in forked processes (they inherit ``_JOB``; they use no
-    torch, whose OpenMP pool is not fork-safe), at most ``READ_AHEAD`` chunks per worker ahead.
-    """
-    if workers <= 1:
-        yield from (_read_chunk(a, b) for a, b in chunks)
-        return
-    todo = iter(chunks)
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        pending: deque[Future] = deque(pool.submit(_read_chunk, a, b) for a, b in itertools.islice(todo, READ_AHEAD * workers))
-        try:
-            while pending:
-                rgbs = pending.popleft().result()
-                pending.extend(pool.submit(_read_chunk, a, b) for a, b in itertools.islice(todo, 1))
-                yield rgbs
-        finally:
-            for f in pending:
-                f.cancel()
 
 
 def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progress: bool = False) -> np.ndarray:
@@ -130,7 +106,7 @@ def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progres
     _JOB.update(source=source)
     try:
         with tqdm(total=N, desc="candidates", unit="cand", disable=not progress, dynamic_ncols=True) as bar:
-            for (a, b), rgbs in zip(chunks, _read_chunks(chunks, workers)):
+            for (a, b), rgbs in zip(chunks, ordered_map(_read_chunk, chunks, workers)):
                 out[a:b] = M.best_of_n(view_psnr(rgbs, truth, energy)).mean_scores
                 bar.update(b - a)
     finally:

@@ -11,8 +11,6 @@ are read again from the dataset when its matched candidate gets its full metrics
 
 from __future__ import annotations
 
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -21,6 +19,7 @@ import numpy as np
 
 from scenecore import dataset as D
 from benchgen.score import metrics as M
+from benchgen.score.parallel import ordered_map
 
 
 def evaluated_views(scene: D.Scene, max_views: int = 0) -> list[D.Frame]:
@@ -95,7 +94,7 @@ class Truth:
         return self.mask[:, g].reshape(self.num_views, self.scene.height, self.scene.width)
 
 
-# Set in the parent before forking workers, so that they inherit it instead of unpickling it.
+# Set before forking workers (:func:`parallel.ordered_map`), so that they inherit it unpickled.
 _JOB: dict[str, Any] = {}
 
 
@@ -111,7 +110,8 @@ def _load_configuration(g: int) -> tuple[np.ndarray, np.ndarray]:
 def load_truth(root: str | Path, max_views: int = 0, workers: int = 1, progress: bool = False) -> Truth:
     """Read every configuration's evaluated views and compute their co-visibility masks.
 
-    ``workers`` > 1 reads and masks configurations in that many processes (same result).
+    ``workers`` > 1 reads and masks configurations in that many processes (same result; at most
+    a few configurations' arrays are in flight besides the result).
     """
     from tqdm import tqdm
 
@@ -130,15 +130,9 @@ def load_truth(root: str | Path, max_views: int = 0, workers: int = 1, progress:
     masked_rgb, mask = np.empty((V, G, P * 3), np.uint8), np.empty((V, G, P), bool)
     try:
         with tqdm(total=G, desc="ground truth", unit="config", disable=not progress, dynamic_ncols=True) as bar:
-            if workers > 1:
-                with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-                    for g, (rgb_g, mask_g) in enumerate(pool.map(_load_configuration, range(G))):
-                        masked_rgb[:, g], mask[:, g] = rgb_g, mask_g
-                        bar.update()
-            else:
-                for g in range(G):
-                    masked_rgb[:, g], mask[:, g] = _load_configuration(g)
-                    bar.update()
+            for g, (rgb_g, mask_g) in enumerate(ordered_map(_load_configuration, [(g,) for g in range(G)], workers)):
+                masked_rgb[:, g], mask[:, g] = rgb_g, mask_g
+                bar.update()
     finally:
         _JOB.clear()
     return Truth(root, scene, frames, scales, masked_rgb, mask)

@@ -42,7 +42,6 @@ log = logging.getLogger(__name__)
 
 def _scaled_config(iterations: int | None, config_file: str | None) -> Any:
     """Training config, with every phase length scaled so field iterations total ``iterations``."""
-
     cfg = TrainConfig.from_yaml(config_file) if config_file else TrainConfig()
     if iterations:
         total = cfg.stage1_iters + cfg.rounds * cfg.field_iters
@@ -81,7 +80,6 @@ def demo_command(args: argparse.Namespace) -> str:
 @dataclass(frozen=True)
 class DemoPaths:
     """Where each stage of ``osn demo`` writes, under ``--work``."""
-
     work: Path
 
     @property
@@ -105,6 +103,10 @@ class DemoPaths:
         return self.work / "report"
 
     @property
+    def candidates(self) -> Path:
+        return self.work / "candidates"
+
+    @property
     def export(self) -> Path:
         return self.work / "export"
 
@@ -115,7 +117,6 @@ class DemoPaths:
 
 def stage_generate(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Render the benchmark (the preset with the demo's resolution/configs overrides)."""
-
     spec = load_preset(args.preset)
     if args.resolution or args.configs:
         d = spec.to_dict()
@@ -145,7 +146,6 @@ def _sfm_lines(objects: list[dict]) -> list[str]:
 
 def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Oracle inputs (ablation) and per-object SfM; an SfM failure is a result unless SfM trains."""
-
     video = D.read_training_video(p.dataset, D.load_scene(p.dataset))  # read once for both
     save_inputs(p.oracle, oracle_inputs(p.dataset, video=video))
     try:
@@ -165,7 +165,6 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
 
 def stage_train(args: argparse.Namespace, p: DemoPaths, cfg: Any) -> dict:
     """Train (or resume) on the chosen inputs, monitored against the dataset's exact region."""
-
     resume = (p.run / "checkpoint.pt").exists()
     inputs = None if resume else load_inputs(p.sfm if args.inputs == "colmap" else p.oracle)
     train_on_dataset(p.dataset, p.run, cfg, inputs=inputs, resume=resume)
@@ -177,7 +176,6 @@ def stage_train(args: argparse.Namespace, p: DemoPaths, cfg: Any) -> dict:
 
 def stage_sample(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Draw N configurations from the scale network (no ground truth)."""
-
     s = sample_configurations(load_run(p.run), args.n, args.threshold, args.seed)
     s.save(p.run / "samples.npz")
     return {"n": len(s.sbar), "fell_back": s.fell_back}
@@ -185,22 +183,20 @@ def stage_sample(args: argparse.Namespace, p: DemoPaths) -> dict:
 
 def stage_evaluate(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Best of N against every ground truth, the report and its plots."""
-
-    res = evaluate(load_run(p.run), p.dataset, Samples.load(p.run / "samples.npz"), EvalConfig(max_views=args.max_views))
+    res = evaluate(load_run(p.run), p.dataset, Samples.load(p.run / "samples.npz"), EvalConfig(max_views=args.max_views),
+                   candidates_dir=p.candidates)  # for `benchgen score`
     write_report(res, p.report, p.run, demo_command(args))
     return {"table": res.table, "valid_set": res.valid_set, "scale_error": res.scale_error}
 
 
 def stage_export(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Export the sampled configurations and the dataset's test cameras for Blender."""
-
     export_run(p.run, p.export, dataset=p.dataset)
     return {}
 
 
 def stage_addon(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Build the Blender extension zip next to the outputs."""
-
     return {"zip": str(build_addon_zip(p.work))}
 
 

@@ -35,7 +35,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if samples.sbar.shape[1] != run.inputs.num_objects:
         raise UserError(f"{samples_path}: samples have {samples.sbar.shape[1]} objects, the run has {run.inputs.num_objects}")
     t0 = time.perf_counter()
-    res = evaluate(run, args.data, samples, cfg)
+    res = evaluate(run, args.data, samples, cfg, candidates_dir=args.candidates)
     res.timings["total_s"] = time.perf_counter() - t0
     out = Path(args.out) if args.out else Path(args.run) / "report"
     report = write_report(res, out, Path(args.run), "osn " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
@@ -69,3 +69,6 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--topk", type=int, default=2, help="candidates per ground truth rendered exactly before matching")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     p.add_argument("--seed", type=int, default=0, help="seed of Monte-Carlo valid-set points (more than 3 objects)")
+    p.add_argument("--candidates", metavar="DIR",
+                   help="also write the rendered candidates as prediction directories for `benchgen score` "
+                   "(DIR/preselected, DIR/highest-score, DIR/centre-of-ranges; docs/predictions.md)")

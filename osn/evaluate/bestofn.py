@@ -29,7 +29,7 @@ from scenecore import dataset as D
 from scenecore.config import flag, integer, validate
 from benchgen.score.scorer import ScoreResult, score
 from benchgen.score.truth import Truth, load_truth
-from osn.evaluate.exact import candidate_source
+from osn.evaluate.exact import RenderedCandidates
 from osn.evaluate.layered import layered_psnr
 from osn.evaluate.units import actual_scales, ground_truth_problem
 from osn.evaluate.valid_set import ground_truth_outside_box, valid_set_accuracy, widest_object_profile
@@ -114,19 +114,24 @@ def _table_row(res: ScoreResult) -> dict[str, list[float]]:
     return {k: [v["mean"], v["std"]] for k, v in res.summary.items()}
 
 
-def single_solution_rows(run: TrainedRun, truth: Truth, samples: Samples, with_lpips: bool) -> dict[str, dict[str, list[float]]]:
-    """The two baselines that commit to one solution of the same model, each scored as the only
-    candidate against all G ground truths: the highest-scoring sample and the centre of the
-    learned ranges (the middle of each object's span over the valid samples)."""
+def single_solutions(samples: Samples) -> dict[str, np.ndarray]:
+    """The two baselines that commit to one solution of the same model: the highest-scoring
+    sample and the centre of the learned ranges (the middle of each object's span over the
+    valid samples), as ``name -> sbar (K,)``."""
     centre = 0.5 * (samples.sbar.min(0) + samples.sbar.max(0))
-    rows = {}
-    for name, sbar in (("highest score", samples.sbar[int(np.argmax(samples.score))]), ("centre of learned ranges", centre)):
-        rows[name] = _table_row(score(truth, candidate_source(run, truth, {name: sbar}), with_lpips))
-    return rows
+    return {"highest score": samples.sbar[int(np.argmax(samples.score))], "centre of learned ranges": centre}
 
 
-def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print) -> EvalResult:
-    """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset."""
+def evaluate(
+    run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print,
+    candidates_dir: str | Path | None = None,
+) -> EvalResult:
+    """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset.
+
+    With ``candidates_dir``, the rendered candidates are also written there as prediction
+    directories (``preselected/``, ``highest-score/``, ``centre-of-ranges/``) that
+    ``benchgen score`` scores the same way (8-bit colour, as any method's PNGs).
+    """
     problem = ground_truth_problem(run.inputs)
     if problem:  # checked before any rendering: every metric below needs it
         raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
@@ -144,13 +149,19 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
 
     t0 = time.perf_counter()
     cand = preselect(approx_mean, samples.score, cfg.topk)
-    res = score(truth, candidate_source(run, truth, {sample_name(int(n)): samples.sbar[n] for n in cand}), cfg.lpips, progress=True)
+    rendered = {"preselected": RenderedCandidates(run, truth, {sample_name(int(n)): samples.sbar[n] for n in cand})}
+    res = score(truth, rendered["preselected"], cfg.lpips, progress=True)
     match = cand[[r["match_index"] for r in res.per_ground_truth]]
     timings["exact_scoring_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    table = {f"best of {len(samples.sbar)}": _table_row(res), **single_solution_rows(run, truth, samples, cfg.lpips)}
+    table = {f"best of {len(samples.sbar)}": _table_row(res)}
+    for name, sbar in single_solutions(samples).items():  # each the only candidate against all G
+        rendered[name] = RenderedCandidates(run, truth, {name.replace(" ", "-"): sbar})
+        table[name] = _table_row(score(truth, rendered[name], cfg.lpips))
     timings["baselines_s"] = time.perf_counter() - t0
+    if candidates_dir is not None:
+        write_candidates(rendered, Path(candidates_dir), len(samples.sbar))
     per_gt = [{**{k: v for k, v in r.items() if k not in ("match", "match_index", "configuration")},
                "sample": int(n), "approx_psnr": float(approx_mean[n, g])} for g, (r, n) in enumerate(zip(res.per_ground_truth, match))]
 
@@ -174,6 +185,19 @@ def evaluate(run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: E
         **ground_truth_outside_box(run, truth.scales),
     }
     return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra)
+
+
+def write_candidates(rendered: dict[str, RenderedCandidates], out: Path, n: int) -> None:
+    """The rendered candidates as prediction directories under ``out`` (docs/predictions.md)."""
+    notes = {
+        "preselected": f"OSN: the samples of {n} that the layered estimate pre-selected (top-k per ground truth "
+                       "and the highest-scoring sample), rendered exactly",
+        "highest score": f"OSN: the highest-scoring of {n} samples (one solution)",
+        "centre of learned ranges": f"OSN: the centre of the learned scale ranges of {n} samples (one solution)",
+    }
+    for key, source in rendered.items():
+        source.write(out / key.replace(" of learned ranges", "-of-ranges").replace(" ", "-"),
+                     {"name": f"OSN {key}", "notes": notes[key]})
 
 
 def evaluation_curves(
