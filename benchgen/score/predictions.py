@@ -28,7 +28,6 @@ from scenecore import dataset as D
 from benchgen.score.pngread import PngError, decode_ids, decode_rgb
 
 METHOD_FILE = "method.json"
-KINDS = ("rgb", "depth", "ids")
 SUFFIX = {"rgb": ".png", "depth": ".exr", "ids": ".png"}
 
 
