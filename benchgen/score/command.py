@@ -29,7 +29,7 @@ def add_score_command(sub: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--max-views", type=int, default=0, metavar="K",
                    help="score at most K test views, evenly spread as in 'osn evaluate' (0 = all; candidates need only these)")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS (it needs the weights installed by 'make setup')")
-    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes reading and scoring candidates (same result for any N)")
+    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes reading and checking candidates (and the ground truth) while this one scores them; same result for any N")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
