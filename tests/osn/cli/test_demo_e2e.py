@@ -102,3 +102,20 @@ def test_addon_imports_the_export(demo, tmp_path):
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("OBJECTS"))
     meshes, volumes = map(int, line.split()[1:])
     assert volumes == 3  # room + ball + block
+
+
+def test_benchgen_score_reproduces_the_evaluation_from_the_written_candidates(demo, tmp_path):
+    """`osn evaluate` scores its renders with benchgen.score; the candidates it writes (8-bit PNGs)
+    scored again by `benchgen score` give the same match per ground truth and the same PSNR up to
+    the 8-bit quantisation, and the highest-score candidate gives the report's baseline row."""
+    m = json.loads((demo / "report" / "metrics.json").read_text())
+    for kind, row in (("preselected", f"best of {60}"), ("highest-score", "highest score")):
+        out = tmp_path / kind
+        r = subprocess.run([sys.executable, "-m", "benchgen.cli", "score", str(demo / "candidates" / kind), "--data",
+                            str(demo / "dataset"), "--max-views", "3", "--no-lpips", "--quiet", "--out", str(out)],
+                           capture_output=True, text=True, timeout=300, cwd=ROOT)
+        assert r.returncode == 0, r.stderr
+        s = json.loads((out / "metrics.json").read_text())
+        assert s["summary"]["psnr"]["mean"] == pytest.approx(m["table"][row]["psnr"][0], abs=0.02)
+        if kind == "preselected":
+            assert [x["match"] for x in s["per_ground_truth"]] == [f"sample_{g['sample']:05d}" for g in m["per_gt"]]
