@@ -27,30 +27,46 @@ class EmptyRegionError(ValueError):
 
 
 def accumulate_ratio_bounds(
-    bounds: np.ndarray, visible: np.ndarray, alone_depths: np.ndarray
+    bounds: np.ndarray, visible: np.ndarray, alone_depths: np.ndarray, where: str = "frame"
 ) -> np.ndarray:
     """Tighten ratio bounds ``B (K, K)`` with one training frame, in place; returns ``B``.
 
     Args:
         bounds: ``(K, K)`` current bounds, ``+inf`` where unconstrained.
         visible: ``(H, W)`` integer id of the visible object per pixel (``>= K`` for none).
-        alone_depths: ``(K, H, W)`` planar depth of each object rendered alone, ``+inf`` (or any
-            non-finite / non-positive value) where the object does not cover the pixel.
+        alone_depths: ``(K, H, W)`` planar depth of each object rendered alone, ``+inf`` (or a
+            non-positive value) where the object does not cover the pixel.
+        where: names the frame in errors.
+
+    Ratios are taken in float64 (float32 depths of 1e-30 and 1e30 give a ratio of 1e60, which
+    float32 would turn into ``inf``, i.e. "unconstrained").
+
+    Raises:
+        ValueError: a depth is NaN (a NaN would otherwise drop the pair's bound silently and
+            leave the region unbounded), or the visible object does not cover its own pixel.
     """
     K = bounds.shape[0]
-    covered = np.isfinite(alone_depths) & (alone_depths > 0)
+    depths = np.asarray(alone_depths, dtype=np.float64)
+    nan = np.isnan(depths)
+    if nan.any():
+        k = int(np.argwhere(nan.reshape(K, -1).any(axis=1))[0, 0])
+        raise ValueError(f"{where}: the depth of object {k} rendered alone is NaN at {int(nan[k].sum())} pixels")
+    covered = np.isfinite(depths) & (depths > 0)
     for i in range(K):
         sel = visible == i
         if not sel.any():
             continue
-        d_i = alone_depths[i][sel]
+        if not covered[i][sel].all():
+            raise ValueError(f"{where}: object {i} is visible at {int((~covered[i][sel]).sum())} pixels "
+                             "where its own depth is not finite and positive")
+        d_i = depths[i][sel]
         for j in range(K):
             if j == i:
                 continue
             cov = covered[j][sel]
             if not cov.any():
                 continue
-            ratio = np.min(alone_depths[j][sel][cov] / d_i[cov])
+            ratio = np.min(depths[j][sel][cov] / d_i[cov])
             if ratio < bounds[i, j]:
                 bounds[i, j] = ratio
     return bounds
@@ -79,9 +95,13 @@ class ValidRegion:
             EmptyRegionError: when no configuration satisfies every constraint, naming a cycle.
         """
         B = np.array(ratio_bounds, dtype=np.float64)
+        if B.ndim != 2 or B.shape[0] != B.shape[1]:
+            raise ValueError(f"ratio bounds must be a square matrix, got shape {B.shape}")
         K = B.shape[0]
-        if B.shape != (K, K):
-            raise ValueError(f"ratio bounds must be square, got {B.shape}")
+        if K == 0:
+            raise ValueError("a valid region needs at least one object, got none")
+        if not 0 <= anchor < K:
+            raise ValueError(f"anchor {anchor} is not one of the {K} objects")
         if np.any(np.isnan(B)) or np.any(B <= 0):
             raise ValueError("ratio bounds must be positive (NaN or <= 0 found)")
         np.fill_diagonal(B, np.inf)

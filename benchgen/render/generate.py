@@ -109,7 +109,7 @@ class Worker:
             seen_depth = np.take_along_axis(alone, np.minimum(full.ids, K - 1)[None].astype(np.int64), 0)[0]
             if not np.allclose(seen_depth[hit], full.depth[hit], rtol=1e-5):
                 raise RuntimeError(f"frame {name}: per-object depth renders disagree with the full render")
-            accumulate_ratio_bounds(bounds, full.ids, alone)
+            accumulate_ratio_bounds(bounds, full.ids, alone, where=f"frame {name}")
         return TaskResult(task, 0, 0.0, bounds=bounds)
 
     def _test(self, task: Task) -> TaskResult:

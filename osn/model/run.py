@@ -20,7 +20,7 @@ from scenecore.cameras import pixel_rays
 from osn.model.fields import Field, FieldConfig, make_field
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
-from osn.model.scale_net import ScaleNet, full_sbar
+from osn.model.scale_net import NonFiniteScores, ScaleNet, check_scores, full_sbar
 from osn.model.volume import ObjectRays, RenderOutput, render
 
 #: Version of ``checkpoint.pt`` that ``osn train`` writes (2 added the scale phase's replay
@@ -80,7 +80,10 @@ class TrainedRun:
         out = []
         for i in range(0, len(s), batch):
             x = torch.as_tensor(s[i : i + batch], dtype=torch.float32, device=self.device)
-            out.append(self.net.prob(x).double().cpu().numpy())
+            try:
+                out.append(check_scores(self.net.prob(x)).double().cpu().numpy())
+            except NonFiniteScores as e:
+                raise NonFiniteScores(f"{self.path / 'checkpoint.pt'}: {e}") from None
         return np.concatenate(out) if out else np.zeros(0)
 
     @torch.no_grad()
@@ -130,7 +133,7 @@ class TrainedRun:
                 out: RenderOutput = render(rays, dc, S, None, bg, float(cfg.get("skip_occluded", 0.0)))
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc
-                depth[i : i + R] = torch.where(out.acc > EMPTY_ACC, out.normalised_depth(), torch.full_like(out.acc, float("inf")))
+                depth[i : i + R] = out.normalised_depth(EMPTY_ACC)
                 ids[i : i + R] = torch.where(out.acc > 0.5, obj_ids[out.log_seg.argmax(1)], torch.full_like(ids[i : i + R], 255))
         return {
             "rgb": rgb.clamp(0, 1).reshape(H, W, 3).cpu().numpy(),

@@ -24,6 +24,22 @@ log = logging.getLogger(__name__)
 VALID_THRESHOLD = 0.5
 
 
+class NonFiniteScores(ValueError):
+    """The scale network scored some candidates NaN (its weights diverged)."""
+
+
+def check_scores(p: torch.Tensor) -> torch.Tensor:
+    """``p (N,)`` unchanged if every score is a number; otherwise :class:`NonFiniteScores`.
+
+    ``p > threshold`` is False for NaN and ``argmax`` takes NaN as the maximum, so a NaN score
+    would otherwise pick an arbitrary sample as "best".
+    """
+    bad = int(torch.isnan(p).sum())
+    if bad:
+        raise NonFiniteScores(f"the scale network scores {bad} of {len(p)} candidates NaN (diverged weights)")
+    return p
+
+
 class ScaleNet(nn.Module):
     """MLP with ``layers`` hidden layers of ``width`` (paper: 4 x 64) and a validity logit."""
 
@@ -87,18 +103,19 @@ def sample_valid(
     the object count, so uniform candidates can all miss it) and one of those that pass is
     picked; the uniform draw, which covers the whole valid set, stays the rule. When none
     passes, the best-scoring candidate of either set is used and a warning is logged (unless ``warn`` is
-    False because the caller counts fallbacks): this never raises. Returns
+    False because the caller counts fallbacks). Raises :class:`NonFiniteScores` on a NaN score,
+    never otherwise. Returns
     ``(sbar (K,), s_free (K-1,), score, fell_back)``.
     """
     dev = ranges.device
     s = torch.rand(candidates, net.num_free, generator=generator, device=generator.device).to(dev)
     with torch.no_grad():
-        p = net.prob(s)
+        p = check_scores(net.prob(s))
     ok = torch.nonzero(p > threshold)[:, 0]
     if not len(ok) and near is not None:
         s2 = near(candidates).to(dev)
         with torch.no_grad():
-            p2 = net.prob(s2)
+            p2 = check_scores(net.prob(s2))
         # Both sets together: one passing near candidate is picked, or the best of either set.
         s, p = torch.cat([s, s2]), torch.cat([p, p2])
         ok = torch.nonzero(p > threshold)[:, 0]

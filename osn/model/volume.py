@@ -49,9 +49,15 @@ class RenderOutput:
     acc: torch.Tensor
     log_seg: torch.Tensor
 
-    def normalised_depth(self) -> torch.Tensor:
-        """Depth ``(R,)`` of the visible surface, ``depth / acc`` (guarded where nothing is hit)."""
-        return self.depth / self.acc.clamp_min(1e-6)
+    def normalised_depth(self, min_acc: float = 1e-6) -> torch.Tensor:
+        """Depth ``(R,)`` of the visible surface, ``depth / acc``; ``+inf`` where ``acc <= min_acc``.
+
+        A ray that hits nothing has no surface: ``+inf`` (behind everything) rather than 0,
+        which would put a surface at the camera centre and in front of every other object.
+        """
+        miss = self.acc <= min_acc  # False for a NaN opacity, so NaN stays NaN
+        safe = torch.where(miss, torch.ones_like(self.acc), self.acc)
+        return torch.where(miss, torch.full_like(self.depth, float("inf")), self.depth / safe)
 
 
 def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -76,8 +82,11 @@ def transmittance_weights(optical: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     ``w_i = T_i (1 - exp(-tau_i))`` with ``log T_i = -sum_{j<i} tau_j`` (exclusive cumsum, no
     subtraction so no ``inf - inf``). ``log_w`` is floored at ``log(1e-30)`` for the opacity
     term, so it is finite and its gradient never meets ``log(0)`` (``0 * inf = NaN``).
+    ``+inf`` is clamped to :data:`MAX_OPTICAL` (an opaque sample); a NaN stays NaN and reaches
+    the loss, where training stops with ``TrainingDiverged`` (read as empty space it would hide
+    a diverged field).
     """
-    tau = torch.nan_to_num(optical, nan=0.0, posinf=MAX_OPTICAL).clamp(0.0, MAX_OPTICAL)
+    tau = optical.clamp(0.0, MAX_OPTICAL)  # clamp keeps NaN
     csum = torch.cumsum(tau, dim=-1)
     log_t = -torch.cat([torch.zeros_like(csum[..., :1]), csum[..., :-1]], dim=-1)
     alpha = -torch.expm1(-tau)
@@ -165,6 +174,10 @@ def render(
     """
     R, K, S = dirs_cam.shape[0], len(objects), n_samples
     dev = dirs_cam.device
+    bg = background if background is not None else torch.zeros(3, device=dev)
+    if K == 0:  # nothing to composite (e.g. every object absent from a frame): the background
+        zero = torch.zeros(R, device=dev)
+        return RenderOutput(rgb=bg.expand(R, 3).clone(), depth=zero, acc=zero.clone(), log_seg=torch.zeros(R, 0, device=dev))
     samples = [_object_samples(obj, dirs_cam, S, generator) for obj in objects]
     t_all = torch.cat([torch.where(s[4][:, None], s[0], torch.full_like(s[0], float("inf"))) for s in samples], 1)
     order = torch.argsort(t_all, dim=1)
@@ -206,7 +219,6 @@ def render(
 
     w, log_w = transmittance_weights(tau)
     acc = w.sum(1)
-    bg = background if background is not None else torch.zeros(3, device=dev)
     rgb = (w[..., None] * col).sum(1) + (1.0 - acc)[:, None] * bg
     depth = (w * t_sorted).sum(1)
     # A finite fill (not -inf): logsumexp's gradient is NaN when all its inputs are -inf.

@@ -260,7 +260,8 @@ def _inputs_from(meta: dict[str, Any], arr: dict[str, np.ndarray]) -> SceneInput
 
 def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
     """Raise ``InputsError`` on shapes, an unknown anchor, frames outside the video, sparse
-    pixels outside the image, empty boxes, non-finite poses or inverted ranges."""
+    pixels outside the image, empty boxes, non-finite poses, inverted ranges, or an object with
+    no mask pixel in the frames where it has a pose."""
     T = len(inputs.timestamps)
     if inputs.images.shape != (T, inputs.height, inputs.width, 3):
         raise InputsError(f"{where}: images have shape {inputs.images.shape}, expected {(T, inputs.height, inputs.width, 3)}")
@@ -289,6 +290,9 @@ def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
             pix = np.asarray(pix).reshape(-1, 2)
             if np.any(pix < 0) or np.any(pix[:, 0] >= inputs.width) or np.any(pix[:, 1] >= inputs.height):
                 raise InputsError(f"{where}: {label} has sparse pixels outside the {inputs.width}x{inputs.height} image")
+        if not np.any(inputs.masks[o.frames] == o.id):
+            raise InputsError(f"{where}: {label} covers no mask pixel in the {len(o.frames)} frame(s) where it has a pose; "
+                              "nothing can train its field (drop it from the masks, or register it in frames that show it)")
         scale_range(inputs.scene_near, inputs.scene_far, o.near, o.far)
 
 

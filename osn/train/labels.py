@@ -52,7 +52,7 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     object's ``acc`` is in ``(uncertain_acc, coverage_threshold]``.
     """
     HW = st.H * st.W
-    depth = torch.zeros(len(flat), st.K, device=st.device)
+    depth = torch.full((len(flat), st.K), float("inf"), device=st.device)  # no surface where absent
     covered = torch.zeros(len(flat), st.K, dtype=torch.bool, device=st.device)
     # Some object is semi-transparent on the ray (acc between uncertain_acc and the coverage
     # threshold): whether it "covers" is a coin flip of the threshold, so the ray is dropped.

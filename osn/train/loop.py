@@ -44,6 +44,7 @@ from scenecore.validity import ValidRegion
 from benchgen.score.metrics import psnr_from_mse as psnr
 from osn.model.run import read_checkpoint
 from osn.preprocess.inputs import SceneInputs, load_inputs, save_inputs
+from osn.model.scale_net import NonFiniteScores
 from osn.train.checkpoint import TrainingDiverged, append_metrics, save_checkpoint, truncate_metrics
 from osn.train.config import TrainConfig
 from osn.train.monitor import TrainingMonitor
@@ -100,7 +101,10 @@ def _iterate(trainer: Trainer, monitor: TrainingMonitor, out: Path, stop: int, p
     t_start = time.perf_counter() - trainer.elapsed
     while trainer.iteration < stop:
         ph = trainer.phase(trainer.iteration)
-        losses = trainer.step()
+        try:
+            losses = trainer.step()
+        except NonFiniteScores as e:  # the scale network's weights are NaN: same one line as a NaN loss
+            raise TrainingDiverged.at(out, trainer.iteration, ph, str(e)) from None
         bad = sorted(k for k, v in losses.items() if not math.isfinite(v))
         if bad:  # stop before a NaN reaches a checkpoint; the last good one stays resumable
             raise TrainingDiverged.at(out, trainer.iteration, ph, f"loss {', '.join(bad)} is {losses[bad[0]]}")

@@ -34,8 +34,9 @@ class SceneTensors:
         t_range: ``(K, 2)`` planar-depth range each object is sampled in (its own unit).
         sp_frame, sp_pix, sp_depth, sp_obj: ``(P,)`` every sparse depth: frame, pixel, depth, object.
         obj_pixels, obj_sparse: per object the flat pixels of its mask / indices of its sparse depths.
-        usable: flat pixels not of a dropped object (``IGNORE_ID``); None when that is every pixel.
-        ignored: ``(T * HW,)`` bool, the pixel belongs to a dropped object.
+        usable: flat pixels not ignored; None when that is every pixel.
+        ignored: ``(T * HW,)`` bool, the pixel belongs to a dropped object (``IGNORE_ID``) or to
+            an object without a pose in its frame (``unposed_pixels`` of them): no ray is drawn there.
         ranges: ``(K, 2)`` float64 scale range per object (Eq. 1).
     """
 
@@ -65,8 +66,15 @@ class SceneTensors:
         flat_labels = self.labels.reshape(-1)
         # Pixels of objects that preprocessing dropped carry no supervision at all (None: every pixel).
         ignored = torch.from_numpy(inputs.masks.reshape(-1) == IGNORE_ID).to(device)
+        # A mask pixel of an object in a frame where it has no pose (SfM did not register it
+        # there) cannot be rendered by it: such rays would give no gradient, only a constant
+        # error, and in composite steps ask the wrong objects to explain the pixel. Left out.
+        frame_of = torch.arange(T, device=device).repeat_interleave(H * W)
+        has_pose = self.present[flat_labels.clamp_min(0), frame_of] | (flat_labels < 0)
+        self.unposed_pixels = int((~has_pose).sum())
+        ignored = ignored | ~has_pose
         self.usable = torch.nonzero(~ignored)[:, 0] if bool(ignored.any()) else None
-        self.obj_pixels = [torch.nonzero(flat_labels == k)[:, 0] for k in range(self.K)]
+        self.obj_pixels = [torch.nonzero((flat_labels == k) & has_pose)[:, 0] for k in range(self.K)]
         self.ignored = ignored
         self.obj_sparse = [torch.nonzero(self.sp_obj == k)[:, 0] for k in range(self.K)]
         self.ranges = torch.from_numpy(inputs.scale_ranges()).to(device, torch.float64)

@@ -40,6 +40,9 @@ class Trainer:
         self.cfg, self.device = cfg, device
         self.st = SceneTensors(inputs, device)
         K = self.st.K
+        if self.st.unposed_pixels:
+            log.warning("%d mask pixels belong to objects without a pose in their frame (not registered there); "
+                        "no ray is drawn from them", self.st.unposed_pixels)
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k).to(device) for k, o in enumerate(inputs.objects)]
