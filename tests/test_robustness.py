@@ -40,7 +40,6 @@ from osn.evaluate.layered import composite_layers, Layer, masked_mse_matrix
 from osn.preprocess.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
 from osn.sample.configurations import sample_configurations
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.softz import implied_segmentation, soft_segmentation_log
 from osn.model.volume import transmittance_weights
 from tests.synthetic import write_synthetic_dataset
 from osn.evaluate.units import actual_scales, ground_truth_problem, true_scales
@@ -480,43 +479,6 @@ def test_contradictory_and_identical_objects_name_the_objects() -> None:
     B = accumulate_ratio_bounds(np.full((2, 2), np.inf), visible, same)
     with pytest.raises(EmptyRegionError, match="contradict"):
         ValidRegion.from_bounds(B)
-
-
-@settings(max_examples=60, deadline=None)
-@given(data=st.data(), K=st.integers(1, 16), R=st.integers(1, 8), H=st.integers(1, 4))
-def test_soft_z_buffer_is_finite_for_extreme_depths_and_scales(data, K: int, R: int, H: int) -> None:
-    """Depths 1e-3..1e4 and scales 1e-3..1e3: log-probabilities finite exactly where an object
-    covers the ray, their argmax is the hard segmentation, rays nobody covers are uniform."""
-    floats = lambda lo, hi, n: np.array(data.draw(st.lists(st.floats(lo, hi), min_size=n, max_size=n)))  # noqa: E731
-    depth = torch.from_numpy(floats(1e-3, 1e4, R * K).reshape(R, K))
-    covered = torch.from_numpy(np.array(data.draw(st.lists(st.booleans(), min_size=R * K, max_size=R * K))).reshape(R, K))
-    sbar = torch.from_numpy(floats(1e-3, 1e3, H * K).reshape(H, K))
-    logp = soft_segmentation_log(depth, covered, sbar)
-    assert not torch.isnan(logp).any()
-    any_cov = covered.any(1)
-    assert torch.isfinite(logp[:, any_cov][covered[any_cov][None].expand(H, -1, -1)]).all()
-    assert torch.isneginf(logp[:, any_cov][~covered[any_cov][None].expand(H, -1, -1)]).all()
-    assert torch.allclose(logp[:, ~any_cov], torch.full_like(logp[:, ~any_cov], -np.log(K)))
-    hard = implied_segmentation(depth, covered, sbar)
-    z = torch.log(sbar)[:, None, :] + torch.log(depth)[None]
-    z = torch.where(covered[None], z, torch.full_like(z, np.inf))
-    chosen = logp.argmax(-1)
-    # Equal up to ties of the scaled depths (exp() can round two close ones to the same value).
-    z_c, z_h = z.gather(-1, chosen[..., None])[..., 0], z.gather(-1, hard[..., None])[..., 0]
-    agree = (chosen == hard) | ((z_c - z_h).abs() <= 1e-12 * z_h.abs().clamp_min(1.0))
-    assert torch.all(agree[:, any_cov])
-
-
-def test_soft_z_buffer_beyond_float_range_and_identical_objects() -> None:
-    """Scaled depths past 1.8e308 are clamped (documented tie), never NaN; identical objects
-    at identical depth and scale split the ray evenly."""
-    depth = torch.tensor([[1e200, 1e200], [2.0, 2.0]], dtype=torch.float64)
-    covered = torch.ones(2, 2, dtype=torch.bool)
-    logp = soft_segmentation_log(depth, covered, torch.tensor([[1e200, 1e200]], dtype=torch.float64))
-    assert torch.isfinite(logp).all()
-    assert torch.allclose(logp, torch.full_like(logp, -np.log(2)))
-    near_zero = soft_segmentation_log(torch.tensor([[1e-300, 1.0]], dtype=torch.float64), covered[:1], torch.ones(1, 2, dtype=torch.float64))
-    assert torch.isfinite(near_zero).all() and near_zero[0, 0, 0] > near_zero[0, 0, 1]
 
 
 def test_transmittance_with_huge_and_infinite_densities() -> None:
