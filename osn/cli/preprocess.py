@@ -33,13 +33,15 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         )
     except ValueError as e:
         raise UserError(f"osn preprocess: {e}") from None
+    if args.work_dir and Path(args.work_dir).exists() and any(Path(args.work_dir).iterdir()):
+        raise UserError(f"{args.work_dir}: --work-dir exists and is not empty; name a new directory")
     t0 = time.perf_counter()
     src = Path(args.source)
     progress = (lambda msg: print(f"  {msg} ...", flush=True))
     if (src / "scene.json").exists():
         if args.masks:
             raise UserError(f"{src} is a benchgen dataset: its instance masks are used, drop --masks")
-        inputs, report = preprocess_dataset(src, cfg, progress)
+        inputs, report = preprocess_dataset(src, cfg, progress, work_dir=args.work_dir)
     else:
         inputs, report = _preprocess_frames(src, args, cfg, progress)
     save_inputs(args.out, inputs)
@@ -65,7 +67,7 @@ def _preprocess_frames(
     T = len(images)
     inputs, report = preprocess_video(
         images, masks, K, np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1), {i: f"object{i}" for i in ids},
-        anchor, cfg, progress,
+        anchor, cfg, progress, args.work_dir,
     )
     inputs.meta["frames"] = names
     return inputs, report
@@ -91,6 +93,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fov", type=float, help="horizontal field of view in degrees, centred principal point (frames directory only)")
     p.add_argument("--anchor", type=int, help="id of the anchor (background) object; default: the id covering most pixels")
     p.add_argument("--out", required=True, help="output directory (inputs.json, inputs.npz, preprocess_report.json)")
+    p.add_argument("--work-dir", help="keep each object's COLMAP working directory here (DIR/object_<id>: images/, "
+                   "database.db, model/) to open it in COLMAP; default: a temporary directory, removed")
     p.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], default="auto",
                    help="feature matching; auto = exhaustive up to 60 frames, sequential beyond")
     p.add_argument("--min-frames", type=int, default=3, help="an object must register at least this many frames")

@@ -1,7 +1,9 @@
-"""``osn train DATASET --out RUN [--config FILE] [--inputs DIR] [--resume]``.
+"""``osn train [DATASET] --out RUN [--config FILE] [--inputs DIR] [--resume]``.
 
 The dataset is read here, not by training: its exact valid region goes to the training monitor
 (the valid-set metrics), and its ground truth gives the oracle inputs when ``--inputs`` is not given.
+A user's own video has no dataset: ``osn train --inputs DIR`` trains on ``osn preprocess``'s output
+and measures nothing against ground truth.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ def dataset_region(dataset: str | Path | None) -> ValidRegion | None:
 
 
 def train_on_dataset(
-    dataset: str | Path,
+    dataset: str | Path | None,
     out: str | Path,
     cfg: TrainConfig | None = None,
     *,
@@ -40,7 +42,10 @@ def train_on_dataset(
 ) -> Path:
     """What ``osn train DATASET`` runs: :func:`osn.train.train` measured against the dataset's
     exact region, on ``inputs`` or (a new run without them) the dataset's oracle inputs.
-    A resumed run keeps its own config and inputs; the region is read again from ``dataset``."""
+    A resumed run keeps its own config and inputs; the region is read again from ``dataset``.
+    Without a dataset (a user's video) ``inputs`` are required and no region is measured."""
+    if dataset is None and inputs is None and not resume:
+        raise UserError(f"{out}: give a benchgen DATASET or --inputs DIR (from `osn preprocess`)")
     check_run_directory(out, resume)  # before the oracle inputs cost anything
     region = dataset_region(dataset)
     if not resume and inputs is None:
@@ -66,15 +71,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
-    """Register ``osn train DATASET --out RUN [--config FILE] [--inputs DIR] [--resume]``."""
-    p = subcommand(sub, "train", _cmd_train, "train per-object fields and the object scale network on a dataset")
+    """Register ``osn train [DATASET] --out RUN [--config FILE] [--inputs DIR] [--resume]``."""
+    p = subcommand(sub, "train", _cmd_train, "train per-object fields and the object scale network on a dataset or on "
+                   "preprocessed inputs")
     p.set_defaults(resume_hint="run the same command with --resume to continue")
-    p.add_argument("dataset", help="benchgen dataset directory (oracle per-object inputs are derived from it; "
-                   "its valid_region.json, when present, measures the learned valid set)")
+    p.add_argument("dataset", nargs="?", default=None,
+                   help="benchgen dataset directory (oracle per-object inputs are derived from it; its valid_region.json, "
+                   "when present, measures the learned valid set); leave it out for your own video and pass --inputs")
     p.add_argument("--out", required=True, help="run directory (checkpoint, metrics.jsonl, config, inputs)")
     p.add_argument("--config", help="YAML training config; omitted keys take the CPU defaults (configs/osn-cpu.yaml)")
     p.add_argument("--inputs", help="per-object inputs directory from `osn preprocess` (or `osn oracle`); "
-                   "default: oracle inputs derived from the dataset's ground truth")
+                   "default: oracle inputs derived from DATASET's ground truth")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint, with the config and inputs it started with")
     p.add_argument("--max-iterations", type=int, default=None, help="stop after this global iteration (resumable)")

@@ -42,13 +42,15 @@ def preprocess_video(
     anchor: int,
     cfg: PreprocessConfig,
     progress: Callable[[str], None] | None = None,
+    work_dir: str | Path | None = None,
 ) -> tuple[SceneInputs, PreprocessReport]:
     """Per-object SfM for a whole video; returns inputs (SfM frames and units) and a report.
 
     ``images (T, H, W, 3)`` uint8, ``masks (T, H, W)`` instance ids, ``K (3, 3)`` pixel
     intrinsics, ``timestamps (T,)``. An object that fails to register stops everything when
     ``cfg.on_failure`` is ``stop`` or it is the ``anchor``; otherwise it is dropped (its pixels
-    become ``IGNORE_ID``) and the report says why.
+    become ``IGNORE_ID``) and the report says why. ``work_dir`` keeps each object's COLMAP
+    working directory as ``work_dir/object_<id>`` (:func:`object_work_dir`) for inspection.
     """
     T, H, W = masks.shape
     report = PreprocessReport()
@@ -57,7 +59,8 @@ def preprocess_video(
         if progress:
             progress(f"SfM of object {oid} ({name})")
         try:
-            sfm = reconstruct_object(images, masks, oid, K, cfg, name)
+            sfm = reconstruct_object(images, masks, oid, K, cfg, name,
+                                     object_work_dir(work_dir, oid) if work_dir is not None else None)
         except ObjectRegistrationError as e:
             if cfg.on_failure == "stop" or oid == anchor:
                 raise
@@ -82,6 +85,11 @@ def preprocess_video(
         meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
     )
     return inputs, report
+
+
+def object_work_dir(work_dir: str | Path, object_id: int) -> Path:
+    """Where object ``object_id``'s COLMAP images, ``database.db`` and ``model/`` are kept."""
+    return Path(work_dir) / f"object_{object_id}"
 
 
 def _object_report(oid: int, name: str, sfm: ObjectSfM) -> dict:
@@ -122,21 +130,22 @@ def report_lines(objects: list[dict]) -> list[str]:
 
 def preprocess_dataset(
     dataset_root: str | Path, cfg: PreprocessConfig, progress: Callable[[str], None] | None = None,
-    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, work_dir: str | Path | None = None,
 ) -> tuple[SceneInputs, PreprocessReport]:
     """Per-object SfM on a benchgen dataset's training video, aligned to its ground truth.
 
     The dataset's instance masks stand in for a learned segmenter and its intrinsics are the
     known camera. Ground truth is used only *after* SfM, to measure accuracy and to record each
     object's unit and the world-to-anchor similarity (needed to place test cameras). ``video``:
-    :func:`scenecore.dataset.read_training_video`'s result when the caller already read it.
+    :func:`scenecore.dataset.read_training_video`'s result when the caller already read it;
+    ``work_dir`` as in :func:`preprocess_video`.
     """
     root = Path(dataset_root)
     scene = D.load_scene(root)
     images, depths, masks = video if video is not None else D.read_training_video(root, scene)
     names = {o.id: o.name for o in scene.objects}
     inputs, report = preprocess_video(
-        images, masks, scene.intrinsics.matrix(), scene.timestamps.copy(), names, scene.anchor_id, cfg, progress
+        images, masks, scene.intrinsics.matrix(), scene.timestamps.copy(), names, scene.anchor_id, cfg, progress, work_dir
     )
     align_to_ground_truth(inputs, report, scene, depths, masks)
     inputs.meta["dataset"] = str(root)

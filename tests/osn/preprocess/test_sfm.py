@@ -359,3 +359,59 @@ def test_report_lines_name_dropped_objects_and_repaired_frames():
         "    frame 00014: re-posed (1.6% of its verified matches fit SfM's pose, 59.0% after)",
         "  object 3 (ring-toy): DROPPED: object 3 (ring-toy): registered 2 of 15 frames",
     ]
+
+
+def test_users_video_from_frames_to_a_blender_export(sfm_scene, tmp_path):
+    """A user's own video: JPEG frames and PNG instance masks in plain folders (no scene.json),
+    through the command line only: `osn preprocess --fov --work-dir` -> `osn train --inputs` (no
+    dataset) -> `osn sample` -> `osn export`, and the add-on's reader accepts the export. Each
+    object's COLMAP working directory is kept where `--work-dir` says."""
+    from scenecore import dataset as D
+    from scenecore.export_format import read_export
+    import imageio.v3 as iio
+
+    scene = D.load_scene(sfm_scene)
+    frames, masks = tmp_path / "frames", tmp_path / "masks"
+    frames.mkdir()
+    masks.mkdir()
+    for f in sorted(scene.train_frames, key=lambda f: f.time_index):
+        rgb, _, ids = D.read_frame(sfm_scene, f.name)
+        iio.imwrite(frames / f"frame_{f.time_index:03d}.jpg", rgb, quality=95)
+        iio.imwrite(masks / f"frame_{f.time_index:03d}.png", ids)
+    fov = 2 * np.degrees(np.arctan(scene.width / 2 / scene.intrinsics.fx))
+    config = tmp_path / "small.yaml"
+    config.write_text(
+        "stage1_iters: 30\nrounds: 1\nfield_iters: 10\nscale_iters: 10\nfinal_scale_iters: 10\nrays_per_object: 128\n"
+        "rays: 256\ndepth_rays: 32\nsamples: 12\nscale_samples: 64\neval_every: 20\neval_pixels: 512\n"
+        "field: {kind: dense, resolution: 16, initial_resolution: 16, upsample_steps: 0}\n"
+    )
+    inputs, run, export, work = tmp_path / "inputs", tmp_path / "run", tmp_path / "export", tmp_path / "colmap"
+
+    def osn(*argv: str) -> subprocess.CompletedProcess:
+        r = subprocess.run([sys.executable, "-m", "osn.cli", *argv], capture_output=True, text=True)
+        assert r.returncode == 0, f"osn {' '.join(argv)}:\n{r.stderr[-3000:]}"
+        return r
+
+    osn("preprocess", str(frames), "--masks", str(masks), "--fov", str(fov), "--on-failure", "skip",
+        "--out", str(inputs), "--work-dir", str(work))
+    registered = load_inputs(inputs)
+    ids = sorted(o.id for o in registered.objects)
+    assert len(ids) >= 2 and registered.source == "colmap" and registered.world_to_anchor is None
+    for oid in ids:  # what COLMAP's GUI opens: database, images and the final model
+        kept = work / f"object_{oid}"
+        assert (kept / "database.db").is_file() and any((kept / "images").iterdir())
+        assert {"cameras.bin", "images.bin", "points3D.bin"} <= {p.name for p in (kept / "model").iterdir()}
+    osn("train", "--inputs", str(inputs), "--out", str(run), "--config", str(config))
+    osn("sample", str(run), "-n", "8")
+    osn("export", str(run), "--out", str(export))
+    data = read_export(str(export))
+    assert sorted(o.id for o in data.objects) == ids
+    assert data.num_frames == len(scene.train_frames) and data.test_cameras is None
+    assert data.samples is not None and len(data.samples) == 8
+    assert np.all(np.isfinite(data.samples)) and np.all(data.samples > 0)
+    # Refused without a dataset or inputs, in one line.
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "train", "--out", str(tmp_path / "r2")], capture_output=True, text=True)
+    assert r.returncode == 2 and "give a benchgen DATASET or --inputs DIR" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks), "--fov", str(fov),
+                        "--out", str(tmp_path / "i2"), "--work-dir", str(work)], capture_output=True, text=True)
+    assert r.returncode == 2 and "--work-dir exists and is not empty" in r.stderr
