@@ -19,9 +19,10 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_width", "scale_layers"
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
                  "free_band", "label_rays", "label_erode", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc")
+_FRACTIONS = ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc", "scale_lr_final")
 
 _RULES: dict[str, Rule] = {
+    "w_alone": number(0.0),
     **{name: integer(1) for name in _POSITIVE},
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
@@ -56,12 +57,14 @@ class TrainConfig:
     w_seg: float = 0.01
     w_opacity: float = 1.0
     w_free: float = 1.0
+    w_alone: float = 0.0
     free_space: str = "anchor"
     free_rays: int = 128
     free_band: int = 4
     scale_width: int = 64
     scale_layers: int = 4
     scale_lr: float = 5e-3
+    scale_lr_final: float = 1.0
     scale_samples: int = 1024
     label_rays: int = 0
     label_replay: float = 0.5

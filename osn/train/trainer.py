@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import torch
@@ -152,6 +153,15 @@ class Trainer:
 
     def step_stage1(self) -> dict[str, float]:
         """One stage-1 step: each object alone on its masked pixels and sparse depths (Eq. 2)."""
+        total, losses = self._alone_loss()
+        self.field_opt.zero_grad(set_to_none=True)
+        total.backward()
+        self.field_opt.step()
+        return losses
+
+    def _alone_loss(self) -> tuple[torch.Tensor, dict[str, float]]:
+        """The stage-1 objective (each object alone: RGB and sparse depth on its own pixels,
+        opacity, free space, TV) and its terms per object."""
         st, cfg = self.st, self.cfg
         losses = {"rgb": 0.0, "depth": 0.0, "opacity": 0.0, "free": 0.0}
         total = 0.0
@@ -182,10 +192,7 @@ class Trainer:
             losses["rgb"] += l_rgb.item() / st.K
             losses["depth"] += l_depth.item() / st.K
             losses["opacity"] += l_acc.item() / st.K
-        self.field_opt.zero_grad(set_to_none=True)
-        total.backward()
-        self.field_opt.step()
-        return losses
+        return total, losses
 
     # ---- stage 2: field phase ------------------------------------------------------------
 
@@ -229,10 +236,18 @@ class Trainer:
         seg_ok = lab >= 0
         l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
         loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg + sum(self._tv(k) for k in range(st.K))
+        out_losses = {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
+        if cfg.w_alone > 0:
+            # The stage-1 objective keeps each object's own geometry (its silhouette, opacity,
+            # sparse depths) while the composite losses, at sampled configurations, would reshape
+            # the contacts to make those configurations look valid (the scale labels drift).
+            alone, terms = self._alone_loss()
+            loss = loss + cfg.w_alone * alone
+            out_losses.update({f"alone_{k}": v for k, v in terms.items()})
         self.field_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.field_opt.step()
-        return {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
+        return out_losses
 
     # ---- stage 2: scale phase ------------------------------------------------------------
 
@@ -271,6 +286,16 @@ class Trainer:
         """Keep the last ``REPLAY_SIZE`` scale vectors labelled valid (CPU, checkpointed)."""
         self.positives = torch.cat([self.positives, s.detach().cpu().float()])[-REPLAY_SIZE:]
 
+    def scale_lr_at(self, phase: Phase) -> float:
+        """The scale network's learning rate at this iteration: a cosine from ``scale_lr`` at the
+        start of every scale phase down to ``scale_lr_final * scale_lr`` at its end: at a constant
+        rate the last noisy steps decide where the boundary ends up (gnome-house-demo, one fixed
+        label pool, 1050 steps: IoU 0.855 constant, 0.876 with the decay; exact labels 0.92 /
+        0.95). A function of the iteration only, so a resumed run gets the same rates."""
+        cfg = self.cfg
+        t = (self.iteration - phase.start) / max(phase.end - phase.start - 1, 1)
+        return cfg.scale_lr * (cfg.scale_lr_final + (1.0 - cfg.scale_lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
+
     def step_scale(self, phase: Phase) -> dict[str, float]:
         """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""
         self.ensure_cache(phase)
@@ -287,6 +312,8 @@ class Trainer:
         labels = trimmed_labels(pv, cons.sizes(), cfg.label_trim)
         self._remember(s[labels > 0])
         loss = F.binary_cross_entropy_with_logits(self.net(s), labels.to(self.device))
+        for group in self.net_opt.param_groups:
+            group["lr"] = self.scale_lr_at(phase)
         self.net_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.net_opt.step()

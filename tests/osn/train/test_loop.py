@@ -172,3 +172,24 @@ def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
     with pytest.raises(TrainingDiverged, match=r"r2: training diverged at iteration 25 .*non-finite weights in field"):
         train(tmp_path / "r2", _cfg(), inputs=oracle_inputs(tiny_dataset), progress=False)
     assert not (tmp_path / "r2" / "checkpoint.pt").exists()
+
+
+def test_alone_terms_and_scale_lr_decay_train_and_resume_exactly(tiny_dataset: Path, tiny_region: ValidRegion, tmp_path: Path) -> None:
+    """`w_alone` adds each object's stage-1 objective to every field step (logged as `alone_*`);
+    `scale_lr_final` decays the scale network's rate by a cosine within every scale phase, from
+    `scale_lr` at its first step to `scale_lr * scale_lr_final` at its last; both survive a resume
+    bit for bit (the rate is a function of the iteration)."""
+    cfg = _cfg(w_alone=1.0, scale_lr_final=0.1, checkpoint_every=17)
+    trainer = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
+    scale = [p for p in trainer.schedule if p.name == "scale"][0]
+    trainer.iteration = scale.start
+    assert trainer.scale_lr_at(scale) == pytest.approx(cfg.scale_lr)
+    trainer.iteration = scale.end - 1
+    assert trainer.scale_lr_at(scale) == pytest.approx(cfg.scale_lr * 0.1)
+    a = train(tmp_path / "a", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False)
+    b = train(tmp_path / "b", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False, max_iterations=45)
+    train(b, resume=True, region=tiny_region, progress=False)
+    sa, sb = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (a, b))
+    assert all(torch.equal(sa["net"][k], sb["net"][k]) for k in sa["net"])
+    assert all(torch.equal(fa[k], fb[k]) for fa, fb in zip(sa["fields"], sb["fields"]) for k in fa)
+    assert any("alone_rgb" in r for r in _metrics(a))
