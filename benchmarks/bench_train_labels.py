@@ -9,7 +9,7 @@ pool options such as ``coverage_threshold``, ``uncertain_acc``, ``label_stride``
 ``label_erode``, ``label_trim``). Prints the pool size, per object pair the bound its rays set
 (trimmed by ``label_trim``, in dataset scales) next to the exact one, the violations of the
 exact configurations against the lowest (the noise floor), the IoU / precision / recall of the
-*labelled* set (``softz.trimmed_labels`` on the whole pool) on the evaluator's Monte-Carlo
+*labelled* set (``depth_order.trimmed_labels`` on the whole pool) on the evaluator's Monte-Carlo
 samples, then trains a fresh scale network for ``--steps`` scale steps on those fields and
 prints its IoU every 50 steps.
 """
@@ -27,7 +27,7 @@ import yaml
 
 from osn.preprocess.inputs import load_inputs
 from osn.model.scale_net import full_sbar
-from osn.model.softz import trimmed_labels
+from osn.model.depth_order import trimmed_labels
 from osn.cli.train import dataset_region
 from osn.train import Phase, TrainConfig, Trainer, TrainingMonitor
 

@@ -4,7 +4,7 @@ At the start of a scale phase every object's depth is rendered alone, in its own
 strided grid of labelled training pixels (the soft Z-buffer's per-object depths, Eq. 17). The
 rays kept are those where the labelled object and another one both cover the ray opaquely and
 some scale vector in the sampling box explains the label; they become per-pair depth-order
-constraints (:func:`osn.model.softz.order_constraints`) that label every sampled scale vector
+constraints (:func:`osn.model.depth_order.order_constraints`) that label every sampled scale vector
 of the phase's steps.
 """
 
@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from osn.model.fields import Field
-from osn.model.softz import order_constraints
+from osn.model.depth_order import order_constraints
 from osn.model.volume import render
 from osn.train.config import TrainConfig, label_stride
 from osn.train.tensors import SceneTensors

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from osn.model.fields import make_field
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.softz import OrderConstraints, order_constraints, trimmed_labels
+from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import render
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import TrainConfig
@@ -303,7 +303,7 @@ class Trainer:
         s = self._scale_samples()
         sbar = full_sbar(s, st.ranges, st.anchor)
         cons = self._constraints()
-        # Labels relative to the best sample, per object pair (softz.trimmed_labels): learned
+        # Labels relative to the best sample, per object pair (depth_order.trimmed_labels): learned
         # depths have floaters that make some rays wrong for every scale vector. All samples are
         # scored on the same rays, so "within tolerance of the best" compares like with like.
         # The pool is already restricted to rays some scale in the box explains (contested_rays).

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.softz import order_constraints, trimmed_labels
+from osn.model.depth_order import order_constraints, trimmed_labels
 from osn.model.volume import ObjectRays, ray_box, render, transmittance_weights
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
