@@ -178,6 +178,16 @@ def test_nan_scale_scores_are_an_error_not_a_sample(tiny_dataset: Path, tmp_path
     with pytest.raises(TrainingDiverged, match=r"training diverged at iteration \d+ \(\w+ phase\)"):
         train(tmp_path / "r", small_config(), inputs=oracle_inputs(tiny_dataset), progress=False)
 
+    # `osn sample`'s scorer on the run's (finite) last checkpoint, then with NaN weights: named.
+    from osn.model.run import load_run
+
+    run = load_run(tmp_path / "r")
+    assert np.isfinite(run.scores(np.full((4, 2), 0.5))).all()
+    with torch.no_grad():
+        run.net.mlp[-1].bias.fill_(float("nan"))
+    with pytest.raises(NonFiniteScores, match=r"r/checkpoint.pt: the scale network scores 4 of 4 candidates NaN"):
+        run.scores(np.full((4, 2), 0.5))
+
 
 # --------------------------------------------------------------------------------------------
 # Inputs: objects without mask pixels, rays in frames without a pose, an object in one frame

@@ -20,7 +20,7 @@ from scenecore.cameras import pixel_rays
 from osn.model.fields import Field, FieldConfig, make_field
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
-from osn.model.scale_net import NonFiniteScores, ScaleNet, check_scores, full_sbar
+from osn.model.scale_net import ScaleNet, check_scores, full_sbar
 from osn.model.volume import ObjectRays, RenderOutput, render
 
 #: Version of ``checkpoint.pt`` that ``osn train`` writes (2 added the scale phase's replay
@@ -80,10 +80,7 @@ class TrainedRun:
         out = []
         for i in range(0, len(s), batch):
             x = torch.as_tensor(s[i : i + batch], dtype=torch.float32, device=self.device)
-            try:
-                out.append(check_scores(self.net.prob(x)).double().cpu().numpy())
-            except NonFiniteScores as e:
-                raise NonFiniteScores(f"{self.path / 'checkpoint.pt'}: {e}") from None
+            out.append(check_scores(self.net.prob(x), str(self.path / "checkpoint.pt")).double().cpu().numpy())
         return np.concatenate(out) if out else np.zeros(0)
 
     @torch.no_grad()

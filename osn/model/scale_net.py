@@ -28,15 +28,17 @@ class NonFiniteScores(ValueError):
     """The scale network scored some candidates NaN (its weights diverged)."""
 
 
-def check_scores(p: torch.Tensor) -> torch.Tensor:
-    """``p (N,)`` unchanged if every score is a number; otherwise :class:`NonFiniteScores`.
+def check_scores(p: torch.Tensor, where: str = "") -> torch.Tensor:
+    """``p (N,)`` unchanged if every score is a number; otherwise :class:`NonFiniteScores`
+    (its message starts with ``where:`` when given, e.g. the checkpoint's path).
 
     ``p > threshold`` is False for NaN and ``argmax`` takes NaN as the maximum, so a NaN score
     would otherwise pick an arbitrary sample as "best".
     """
     bad = int(torch.isnan(p).sum())
     if bad:
-        raise NonFiniteScores(f"the scale network scores {bad} of {len(p)} candidates NaN (diverged weights)")
+        prefix = f"{where}: " if where else ""
+        raise NonFiniteScores(f"{prefix}the scale network scores {bad} of {len(p)} candidates NaN (diverged weights)")
     return p
 
 

@@ -89,20 +89,26 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         assert np.array_equal(a.frames, b.frames) and np.allclose(a.cam_to_obj, b.cam_to_obj, atol=1e-9)
 
 
-def test_frames_directory_and_cli(sfm_scene, tmp_path):
-    """The generic path: a folder of frames + masks + known field of view, through the CLI."""
+def _video_folders(dataset: Path, tmp_path: Path, suffix: str) -> tuple[Path, Path, float]:
+    """A dataset's training video as a user would have it: frames (``suffix`` .png or .jpg) and
+    same-named PNG instance masks in plain folders; returns them and the horizontal FOV."""
     from scenecore import dataset as D
     import imageio.v3 as iio
 
-    scene = D.load_scene(sfm_scene)
+    scene = D.load_scene(dataset)
     frames, masks = tmp_path / "frames", tmp_path / "masks"
     frames.mkdir()
     masks.mkdir()
     for f in sorted(scene.train_frames, key=lambda f: f.time_index):
-        rgb, _, ids = D.read_frame(sfm_scene, f.name)
-        iio.imwrite(frames / f"{f.time_index:03d}.png", rgb)
-        iio.imwrite(masks / f"{f.time_index:03d}.png", ids)
-    fov = 2 * np.degrees(np.arctan(scene.width / 2 / scene.intrinsics.fx))
+        rgb, _, ids = D.read_frame(dataset, f.name)
+        iio.imwrite(frames / f"frame_{f.time_index:03d}{suffix}", rgb, **({"quality": 95} if suffix == ".jpg" else {}))
+        iio.imwrite(masks / f"frame_{f.time_index:03d}.png", ids)
+    return frames, masks, float(2 * np.degrees(np.arctan(scene.width / 2 / scene.intrinsics.fx)))
+
+
+def test_frames_directory_and_cli(sfm_scene, tmp_path):
+    """The generic path: a folder of frames + masks + known field of view, through the CLI."""
+    frames, masks, fov = _video_folders(sfm_scene, tmp_path, ".png")
     out = tmp_path / "inputs"
     r = subprocess.run(
         [sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks), "--fov", str(fov),
@@ -368,17 +374,9 @@ def test_users_video_from_frames_to_a_blender_export(sfm_scene, tmp_path):
     object's COLMAP working directory is kept where `--work-dir` says."""
     from scenecore import dataset as D
     from scenecore.export_format import read_export
-    import imageio.v3 as iio
 
     scene = D.load_scene(sfm_scene)
-    frames, masks = tmp_path / "frames", tmp_path / "masks"
-    frames.mkdir()
-    masks.mkdir()
-    for f in sorted(scene.train_frames, key=lambda f: f.time_index):
-        rgb, _, ids = D.read_frame(sfm_scene, f.name)
-        iio.imwrite(frames / f"frame_{f.time_index:03d}.jpg", rgb, quality=95)
-        iio.imwrite(masks / f"frame_{f.time_index:03d}.png", ids)
-    fov = 2 * np.degrees(np.arctan(scene.width / 2 / scene.intrinsics.fx))
+    frames, masks, fov = _video_folders(sfm_scene, tmp_path, ".jpg")
     config = tmp_path / "small.yaml"
     config.write_text(
         "stage1_iters: 30\nrounds: 1\nfield_iters: 10\nscale_iters: 10\nfinal_scale_iters: 10\nrays_per_object: 128\n"
