@@ -51,13 +51,29 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return _report(verify_dataset(args.dataset, args.workers, args.executor, args.address, progress=not args.quiet))
 
 
+def _cmd_suite(args: argparse.Namespace) -> int:
+    from benchgen.render.suite import SUITE_PRESETS, run_suite
+    from benchgen.scene.spec import SpecError
+
+    presets = [p for p in args.presets.split(",") if p] if args.presets else SUITE_PRESETS
+    try:
+        rows = run_suite(args.out, presets, resolution=args.resolution, configs=args.configs,
+                         workers=args.workers, executor=args.executor, address=args.address, progress=not args.quiet)
+    except SpecError as e:
+        raise UserError(str(e)) from None
+    failed = [r.preset for r in rows if not r.passed]
+    if failed:
+        print(f"benchgen: verification failed for {', '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def _cmd_presets(args: argparse.Namespace) -> int:
     from benchgen.scene.spec import PRESET_DIR, load_preset, preset_names
 
     for name in preset_names():
         s = load_preset(name)
         print(
-            f"{name:12s} {len(s.objects)} objects, {s.rig.views} views x {s.rig.times} times, "
+            f"{name:16s} {len(s.objects)} objects, {s.rig.protocol} rig, {s.rig.views} cameras x {s.rig.times} times, "
             f"{s.width}x{s.height}, {s.samples} spp, G={s.configs}  ({PRESET_DIR / (name + '.yaml')})"
         )
     return 0
@@ -104,6 +120,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", help="dataset directory written by 'benchgen generate'")
     _add_run_options(p)
     subcommand(sub, "presets", _cmd_presets, "list the built-in scene specs")
+    from benchgen.render.suite import SUITE_PRESETS
+
+    p = subcommand(
+        sub, "suite", _cmd_suite, "generate every paper-style preset and tabulate them",
+        f"Generate one dataset per preset ({', '.join(SUITE_PRESETS)}) under OUT/<preset>, resumable like 'generate', and "
+        "print one table (objects, frames, the exact valid region's share of the paper's Eq. 1 sampling box, narrowest "
+        "and widest per-object interval inside it, verification, wall time), also written to OUT/suite.md and "
+        "OUT/suite.json. Exit code 0: every configuration of every preset verified; 1: a verification failed; 2: bad input.",
+    )
+    p.add_argument("--out", required=True, help="directory holding one dataset per preset (created; resumed)")
+    p.add_argument("--resolution", type=int, default=None, help="square image size in pixels for every preset (default: each preset's)")
+    p.add_argument("--configs", type=int, default=None, help="number G of ground-truth configurations per preset (default: each preset's, 50)")
+    p.add_argument("--presets", default=None, help=f"comma-separated subset of the suite (default: all of {','.join(SUITE_PRESETS)})")
+    _add_run_options(p)
     add_score_command(sub)
     return parser
 

@@ -18,8 +18,14 @@ ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
 
 __all__ = [
     "ACTIVATIONS", "scale_net_numpy", "denormalise", "normalise", "configured_poses", "scale_scores",
-    "learned_intervals", "sample_valid_configurations",
+    "learned_intervals", "sample_valid_configurations", "SCENE_NEAR_FACTOR", "SCENE_FAR_FACTOR",
+    "scale_range", "scene_volume", "eq1_box",
 ]
+
+#: The scene volume of Eq. 1 is ``[SCENE_NEAR_FACTOR * min_k near_k, SCENE_FAR_FACTOR * max_k
+#: far_k]``: below every object's nearest depth and beyond every object's farthest.
+SCENE_NEAR_FACTOR = 0.3
+SCENE_FAR_FACTOR = 1.5
 
 
 def _activate(x: np.ndarray, name: str) -> np.ndarray:
@@ -60,6 +66,36 @@ def scale_net_numpy(
         x = _activate(x, output if i == len(layers) - 1 else hidden)
     out = x[:, 0]
     return out if np.ndim(s_norm) > 1 else out[0]
+
+
+def scale_range(scene_near: float, scene_far: float, near: float, far: float) -> tuple[float, float]:
+    """Eq. 1's range ``[scene_near / near, scene_far / far]`` for one object whose depths span
+    ``[near, far]``; ``ValueError`` instead of ever returning an inverted range."""
+    vals = (scene_near, scene_far, near, far)
+    if not all(np.isfinite(v) and v > 0 for v in vals):
+        raise ValueError(f"near/far must be finite and positive, got scene {scene_near}, {scene_far}, object {near}, {far}")
+    lo, hi = scene_near / near, scene_far / far
+    if not lo < hi:
+        raise ValueError(
+            f"empty scale range [{lo:.4g}, {hi:.4g}]: the scene volume [{scene_near:.4g}, {scene_far:.4g}] "
+            f"must be deeper (far/near) than the object's [{near:.4g}, {far:.4g}]"
+        )
+    return lo, hi
+
+
+def scene_volume(nears: Sequence[float], fars: Sequence[float], near_factor: float = SCENE_NEAR_FACTOR,
+                 far_factor: float = SCENE_FAR_FACTOR) -> tuple[float, float]:
+    """Scene near/far of Eq. 1 from every object's depth range: below every near, beyond every far."""
+    if not (0 < near_factor < 1 <= far_factor):
+        raise ValueError(f"scene volume factors must satisfy 0 < near ({near_factor}) < 1 <= far ({far_factor})")
+    return near_factor * min(nears), far_factor * max(fars)
+
+
+def eq1_box(nears: np.ndarray, fars: np.ndarray, near_factor: float = SCENE_NEAR_FACTOR,
+            far_factor: float = SCENE_FAR_FACTOR) -> np.ndarray:
+    """``(K, 2)`` Eq. 1 scale ranges of objects whose depths span ``[nears[k], fars[k]]``."""
+    scene_near, scene_far = scene_volume(nears, fars, near_factor, far_factor)
+    return np.array([scale_range(scene_near, scene_far, n, f) for n, f in zip(nears, fars)])
 
 
 def denormalise(s_norm: np.ndarray, ranges: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from scenecore.cameras import intrinsics_from_fov, look_at
 from scenecore.dataset import Frame, Intrinsics, Scene, SceneObject
-from benchgen.scene.spec import Keyframe, ObjectSpec, Part, SceneSpec, Texture
+from benchgen.scene.spec import Keyframe, ObjectSpec, Part, RigSpec, SceneSpec, Texture
 
 #: Points sampled on each object's surface for the penetration test (plus its vertices).
 SURFACE_SAMPLES = 3000
@@ -171,19 +171,42 @@ def interpolate_poses(keys: list[Keyframe], times: np.ndarray) -> np.ndarray:
     return out
 
 
-def rig_frames(spec: SceneSpec, times: np.ndarray) -> list[Frame]:
-    """Every (view, time) camera: the training frame at t is ``spec.rig.train_view(t)``."""
-    rig = spec.rig
-    target = np.asarray(rig.target)
+def _orbit_eye(rig: RigSpec, angle_deg: float) -> np.ndarray:
+    """Camera centre on the rig's arc at ``angle_deg`` (0 = -y of the target), at ``rig.height``."""
+    a = np.radians(angle_deg)
+    eye = np.asarray(rig.target, dtype=np.float64) + rig.radius * np.array([np.sin(a), -np.cos(a), 0.0])
+    eye[2] = rig.height
+    return eye
+
+
+def rig_cameras(rig: RigSpec, t: int) -> np.ndarray:
+    """``(views, 4, 4)`` OpenCV camera-to-world poses of every camera of the rig at timestamp ``t``."""
+    target = np.asarray(rig.target, dtype=np.float64)
+    if rig.protocol == "stereo":
+        frac = t / (rig.times - 1) if rig.times > 1 else 0.0
+        left = look_at(_orbit_eye(rig, rig.arc[0] + frac * (rig.arc[1] - rig.arc[0])), target)
+        right = left.copy()
+        right[:3, 3] += rig.baseline * left[:3, 0]  # parallel pair: shifted along the image x axis
+        return np.stack([left, right])
+    if rig.protocol == "multi-camera":
+        centre = look_at(_orbit_eye(rig, float(np.mean(rig.arc))), target)
+        rows, cols = rig.grid
+        eyes = [centre[:3, 3] + rig.spacing * ((c - (cols - 1) / 2) * centre[:3, 0] + (r - (rows - 1) / 2) * centre[:3, 1])
+                for r in range(rows) for c in range(cols)]
+        return np.stack([look_at(e, target) for e in eyes])
     angles = np.linspace(*rig.arc, rig.views) if rig.views > 1 else np.array([np.mean(rig.arc)])
+    return np.stack([look_at(_orbit_eye(rig, a), target) for a in angles])
+
+
+def rig_frames(spec: SceneSpec, times: np.ndarray) -> list[Frame]:
+    """The training frame at each t (``rig.train_view(t)``) and the rig's test views."""
+    rig = spec.rig
     frames = []
     for t in range(len(times)):
         train_v = rig.train_view(t)
-        for v, a in enumerate(np.radians(angles)):
-            eye = target + np.array([rig.radius * np.sin(a), -rig.radius * np.cos(a), 0.0])
-            eye[2] = rig.height
-            split = "train" if v == train_v else "test"
-            frames.append(Frame(f"v{v:02d}_t{t:02d}", v, t, split, look_at(eye, target)))
+        for v, pose in enumerate(rig_cameras(rig, t)):
+            if v == train_v or rig.is_test(v, t):
+                frames.append(Frame(f"v{v:02d}_t{t:02d}", v, t, "train" if v == train_v else "test", pose))
     test = [i for i, f in enumerate(frames) if f.split == "test"]
     if 0 < rig.test_views < len(test):
         keep = {test[i] for i in np.linspace(0, len(test) - 1, rig.test_views).round().astype(int)}

@@ -28,6 +28,9 @@ PART_PARAMS: dict[str, tuple[str, ...]] = {
 }
 TEXTURE_KINDS = ("noise", "checker", "voronoi")
 TRAIN_PATHS = ("diagonal", "sweep")
+#: Camera rigs: the paper's 15 x 15 arc (``orbit``), a stereo pair (Oxford Multimotion) and a
+#: fixed grid of synchronised cameras (NVIDIA Dynamic Scenes). See ``RigSpec``.
+RIG_PROTOCOLS = ("orbit", "stereo", "multi-camera")
 
 
 class SpecError(ValueError):
@@ -84,16 +87,29 @@ class RoomSpec:
 
 @dataclass
 class RigSpec:
-    """``views`` cameras on a horizontal arc around ``target`` x ``times`` timestamps.
+    """The cameras: ``views`` camera positions x ``times`` timestamps, in one of three protocols.
 
-    Viewpoint v sits at angle ``arc[0] + v (arc[1] - arc[0]) / (views - 1)`` degrees (0 = -y
-    axis, counter-clockwise), at ``radius`` from the target and height ``height``. The training
-    camera at timestamp t is viewpoint ``t % views`` (``diagonal``) or
-    ``round(t (views - 1) / (times - 1))`` (``sweep``: one pass along the arc).
-    ``test_views`` > 0 keeps only that many test (view, time) pairs, evenly spread in (time,
-    view) order; 0 keeps all of them (the paper's protocol: 210 for 15 x 15).
+    ``orbit`` (the paper's Dynamic Indoor Scene protocol): viewpoint v sits at angle
+    ``arc[0] + v (arc[1] - arc[0]) / (views - 1)`` degrees (0 = -y axis, counter-clockwise), at
+    ``radius`` from the target and height ``height``, looking at ``target``. The training camera
+    at timestamp t is viewpoint ``t % views`` (``diagonal``) or ``round(t (views - 1) / (times -
+    1))`` (``sweep``: one pass along the arc); every other (view, time) pair is a test view.
+
+    ``stereo`` (Oxford Multimotion): a parallel pair ``baseline`` metres apart; the left camera
+    (view 0) moves along the arc from ``arc[0]`` to ``arc[1]`` over the video (equal angles: a
+    static camera) and films the training video; the right camera (view 1) gives the test views.
+
+    ``multi-camera`` (NVIDIA Dynamic Scenes): ``grid`` = [rows, cols] fixed cameras ``spacing``
+    metres apart on the plane facing the target from the arc's middle angle, each looking at the
+    target; view ``r * cols + c``. Camera 0 is the test camera at every timestamp; the training
+    camera at t follows ``train_path`` over cameras 1..views-1 (NVIDIA's protocol trains on
+    camera t mod 12, which takes camera 0 at t = 0; keeping it out lets the test split start at
+    t = 0, which D-NeRF's loader requires, and gives one test view per timestamp).
+
+    ``test_views`` > 0 keeps only that many test frames, evenly spread in (time, view) order.
     """
 
+    protocol: str = "orbit"
     views: int = 15
     times: int = 15
     fov: float = 60.0
@@ -103,11 +119,23 @@ class RigSpec:
     target: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.6])
     train_path: str = "diagonal"
     test_views: int = 0
+    baseline: float = 0.2
+    grid: list[int] = field(default_factory=lambda: [2, 6])
+    spacing: float = 0.25
 
     def train_view(self, t: int) -> int:
+        if self.protocol == "stereo":
+            return 0
+        first, n = (1, self.views - 1) if self.protocol == "multi-camera" else (0, self.views)
         if self.train_path == "diagonal":
-            return t % self.views
-        return 0 if self.times == 1 else round(t * (self.views - 1) / (self.times - 1))
+            return first + t % n
+        return first + (0 if self.times == 1 else round(t * (n - 1) / (self.times - 1)))
+
+    def is_test(self, view: int, t: int) -> bool:
+        """Whether the camera ``view`` at timestamp ``t`` is a test view (before ``test_views``)."""
+        if view == self.train_view(t):
+            return False
+        return view == 0 if self.protocol == "multi-camera" else True
 
 
 @dataclass
@@ -302,8 +330,20 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         raise c.fail("objects", f"duplicate or reserved object name {dup[0]!r}")
     rd = c.mapping(d.get("rig", {}), "rig", set(RigSpec.__dataclass_fields__))
     r = RigSpec()
+    protocol = rd.get("protocol", r.protocol)
+    if protocol not in RIG_PROTOCOLS:
+        raise c.fail("rig.protocol", f"unknown protocol {protocol!r} (expected one of {', '.join(RIG_PROTOCOLS)})")
+    grid = rd.get("grid", r.grid)
+    if not isinstance(grid, list) or len(grid) != 2:
+        raise c.fail("rig.grid", f"expected [rows, cols], got {grid!r}")
+    grid = [c.integer(x, f"rig.grid[{i}]", 1) for i, x in enumerate(grid)]
+    # The protocol fixes the number of cameras; a contradicting `views` is an error, not ignored.
+    implied = {"stereo": 2, "multi-camera": grid[0] * grid[1]}.get(protocol)
+    if implied is not None and rd.get("views", implied) != implied:
+        raise c.fail("rig.views", f"the {protocol} protocol has {implied} cameras; leave 'views' out or set it to {implied}")
     rig = RigSpec(
-        views=c.integer(rd.get("views", r.views), "rig.views", 1),
+        protocol=protocol,
+        views=c.integer(rd.get("views", implied or r.views), "rig.views", 1),
         times=c.integer(rd.get("times", r.times), "rig.times", 1),
         fov=c.number(rd.get("fov", r.fov), "rig.fov", 1.0, 170.0),
         radius=c.number(rd.get("radius", r.radius), "rig.radius", 0.0, strict_lo=True),
@@ -312,11 +352,16 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         target=c.vector(rd.get("target", r.target), "rig.target", 3),
         train_path=rd.get("train_path", r.train_path),
         test_views=c.integer(rd.get("test_views", r.test_views), "rig.test_views", 0),
+        baseline=c.number(rd.get("baseline", r.baseline), "rig.baseline", 0.0, strict_lo=True),
+        grid=grid,
+        spacing=c.number(rd.get("spacing", r.spacing), "rig.spacing", 0.0, strict_lo=True),
     )
     if rig.train_path not in TRAIN_PATHS:
         raise c.fail("rig.train_path", f"unknown path {rig.train_path!r} (expected one of {', '.join(TRAIN_PATHS)})")
     if rig.views < 2:  # the training video takes one view per time; test views need another
         raise c.fail("rig.views", f"needs at least 2 camera positions so that there are test views, got {rig.views}")
+    if not any(rig.is_test(v, t) for t in range(rig.times) for v in range(rig.views)):
+        raise c.fail("rig", f"the {rig.protocol} rig has no test view")
     res = d.get("resolution", [128, 128])
     res = [res, res] if isinstance(res, int) and not isinstance(res, bool) else res
     if not isinstance(res, list) or len(res) != 2:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from scenecore import dataset as D
+from scenecore import scale_space
 from scenecore.cameras import invert_pose, pixel_rays
 from scenecore.config import Rule, number
 
@@ -123,27 +124,16 @@ class SceneInputs:
 
 
 def scale_range(scene_near: float, scene_far: float, near: float, far: float) -> tuple[float, float]:
-    """Eq. 1's range for one object; raises instead of ever returning an inverted range."""
-    vals = (scene_near, scene_far, near, far)
-    if not all(np.isfinite(v) and v > 0 for v in vals):
-        raise InputsError(f"near/far must be finite and positive, got scene {scene_near}, {scene_far}, object {near}, {far}")
-    lo, hi = scene_near / near, scene_far / far
-    if not lo < hi:
-        raise InputsError(
-            f"empty scale range [{lo:.4g}, {hi:.4g}]: the scene volume [{scene_near:.4g}, {scene_far:.4g}] "
-            f"must be deeper (far/near) than the object's [{near:.4g}, {far:.4g}]"
-        )
-    return lo, hi
+    """Eq. 1's range for one object (:func:`scenecore.scale_space.scale_range`), as an ``InputsError``."""
+    try:
+        return scale_space.scale_range(scene_near, scene_far, near, far)
+    except ValueError as e:
+        raise InputsError(str(e)) from None
 
 
-def denormalise_scales(s: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-    """Eq. 1: normalised scales ``s`` in [0, 1) ``(..., K)`` to actual ``sbar`` given ``ranges (K, 2)``."""
-    return ranges[:, 0] * (1.0 - s) + ranges[:, 1] * s
-
-
-def normalise_scales(sbar: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`denormalise_scales`."""
-    return (sbar - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
+#: Eq. 1 on ``(..., K)`` normalised scales given ``ranges (K, 2)``, and its inverse.
+denormalise_scales = scale_space.denormalise
+normalise_scales = scale_space.normalise
 
 
 # --------------------------------------------------------------------------------------------
@@ -299,8 +289,8 @@ def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
 #: Defaults shared by every writer of inputs (oracle and SfM normalise alike): the scene volume
 #: is ``[SCENE_NEAR_FACTOR * min_k near_k, SCENE_FAR_FACTOR * max_k far_k]`` (Eq. 1) and each
 #: canonical box is padded by ``BOX_PADDING`` of its extent.
-SCENE_NEAR_FACTOR = 0.3
-SCENE_FAR_FACTOR = 1.5
+SCENE_NEAR_FACTOR = scale_space.SCENE_NEAR_FACTOR
+SCENE_FAR_FACTOR = scale_space.SCENE_FAR_FACTOR
 BOX_PADDING = 0.1
 
 #: Config rules of the fields named like the defaults above (what :func:`scene_volume` and
@@ -314,9 +304,10 @@ NORMALISATION_RULES: dict[str, Rule] = {
 
 def scene_volume(objects: list[ObjectInputs], near_factor: float, far_factor: float) -> tuple[float, float]:
     """Scene near/far of Eq. 1: below every object's near and beyond every object's far."""
-    if not (0 < near_factor < 1 <= far_factor):
-        raise InputsError(f"scene volume factors must satisfy 0 < near ({near_factor}) < 1 <= far ({far_factor})")
-    return near_factor * min(o.near for o in objects), far_factor * max(o.far for o in objects)
+    try:
+        return scale_space.scene_volume([o.near for o in objects], [o.far for o in objects], near_factor, far_factor)
+    except ValueError as e:
+        raise InputsError(str(e)) from None
 
 
 def object_inputs_from_observations(

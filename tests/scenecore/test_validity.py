@@ -58,3 +58,25 @@ def test_extreme_scales_finite(log_s, K):
 def test_single_object_unconstrained():
     r = ValidRegion.from_bounds(np.full((1, 1), np.inf))
     assert r.contains(np.array([1.0])) and r.log_margin(np.array([1.0])) == np.inf
+
+
+def test_box_share_matches_the_exact_area_and_stays_measurable_when_tiny():
+    from scenecore.validity import box_share
+
+    # Anchor 0 at 1; objects 1, 2 free with s1 < 2, s2 < 3 and s1 / s2 < 1 (object 1 in front of 2).
+    B = np.full((3, 3), np.inf)
+    B[1, 0], B[2, 0], B[1, 2] = 2.0, 3.0, 1.0
+    region = ValidRegion.from_bounds(B)
+    box = np.array([[1, 1], [0.0, 4.0], [0.0, 4.0]])
+    # Exact valid area inside [0, 4]^2: {s1 < 2, s2 < 3, s1 < s2} = 2 * 3 - 2 * 2 / 2 = 4 of 16.
+    share, err = box_share(region, box, samples=400_000)
+    assert abs(share - 0.25) < 4 * err and err < 2e-3
+    # A box a million times wider than the region: uniform sampling of the box would see nothing,
+    # sampling the region's intervals keeps the relative error small.
+    wide = np.array([[1, 1], [0.0, 4000.0], [0.0, 4000.0]])
+    share, err = box_share(region, wide, samples=100_000)
+    assert abs(share - 4 / 4000.0**2) < 4 * err and err < 0.01 * share
+    # No overlap -> exactly 0; a bad box -> one-line error.
+    assert box_share(region, np.array([[1, 1], [2.5, 4.0], [0.0, 4.0]])) == (0.0, 0.0)
+    with pytest.raises(ValueError, match="lo < hi"):
+        box_share(region, np.array([[1, 1], [4.0, 1.0], [0.0, 4.0]]))
