@@ -25,7 +25,7 @@ LAYERED_ACTIONS = bpy.app.version >= (4, 4, 0)
 P_SCALE, P_KEYED, P_INV, P_INDEX = "osn_scale", "osn_keyed_scale", "osn_inv_scale", "osn_index"
 P_BASE, P_FRAMES, P_MANIFEST, P_CENTRES = "osn_base_pose", "osn_frames", "osn_manifest", "osn_camera_centres"
 P_SAMPLES = "osn_samples"
-_INTERP_LINEAR = 1  # keyframe interpolation enum index: CONSTANT 0, LINEAR 1, BEZIER 2
+_INTERP_CONSTANT, _INTERP_LINEAR = 0, 1  # keyframe interpolation enum index: CONSTANT 0, LINEAR 1, BEZIER 2
 
 
 # --------------------------------------------------------------------------------------------
@@ -90,6 +90,25 @@ def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray
             kp.foreach_set("handle_right", co)
             kp.foreach_set("interpolation", np.full(len(f), _INTERP_LINEAR, dtype=np.int32))
             fc.update()
+
+
+def key_presence(obj: bpy.types.Object, num_frames: int, present: np.ndarray, made: _Created | None = None) -> None:
+    """Hide ``obj`` (viewport and render, constant keys) at the Blender frames where its object
+    has no pose: it left the training view then, so the export knows nowhere to put it, and
+    holding its last pose would show it where it never was. ``present`` holds 0-based time indices."""
+    hidden = np.ones(num_frames)
+    hidden[np.asarray(present, dtype=np.int64)] = 0.0
+    fcurves = _fcurve_collection(obj, create=True, made=made)
+    f = np.arange(num_frames, dtype=np.float64) + 1.0
+    co = np.empty(2 * num_frames)
+    co[0::2], co[1::2] = f, hidden
+    for path in ("hide_viewport", "hide_render"):
+        fc = fcurves.find(path) or fcurves.new(path)
+        fc.keyframe_points.clear()
+        fc.keyframe_points.add(num_frames)
+        fc.keyframe_points.foreach_set("co", co)
+        fc.keyframe_points.foreach_set("interpolation", np.full(num_frames, _INTERP_CONSTANT, dtype=np.int32))
+        fc.update()
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,6 +282,8 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
             for part in parts:
                 coll.objects.link(part)
                 part.parent = empty
+                if len(o.frames) < data.num_frames:
+                    key_presence(part, data.num_frames, o.frames, made)
             _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)  # keys the poses at that scale
         cams = [("OSN training camera", data.camera_to_scene)]
         if data.test_cameras is not None:

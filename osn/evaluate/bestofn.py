@@ -183,8 +183,33 @@ def evaluate(
         "approx_match_agrees": float(np.mean(approx_match == match)),
         "sample_fallbacks": samples.fell_back,
         **ground_truth_outside_box(run, truth.scales),
+        **unposed_object_pixels(run, truth),
     }
     return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra)
+
+
+def unposed_object_pixels(run: TrainedRun, truth: Truth) -> dict[str, Any]:
+    """Co-visible test pixels (configuration 0's ground truth) that show an object the run has no
+    pose for at that view's timestamp: it left the training view then (or preprocessing did not
+    register it), so the run renders nothing for it there and those pixels count as errors.
+
+    Returns the share of co-visible pixels, and per such object the timestamps it is unposed at.
+    """
+    posed = {o.id: set(int(t) for t in o.frames) for o in run.inputs.objects}
+    _, _, ids = truth.views(0)
+    mask = truth.masks(0)
+    hit = np.zeros_like(mask)
+    unposed: dict[str, list[int]] = {}
+    for v, f in enumerate(truth.frames):
+        missing = [oid for oid in range(len(truth.scene.objects)) if f.time_index not in posed.get(oid, set())]
+        hit[v] = np.isin(ids[v], missing) & mask[v]
+        for oid in missing:
+            if np.any(ids[v] == oid):
+                unposed.setdefault(truth.scene.objects[oid].name, []).append(f.time_index)
+    return {
+        "unposed_object_fraction": float(hit.sum() / max(int(mask.sum()), 1)),
+        "unposed_objects": {k: sorted(set(v)) for k, v in unposed.items()},
+    }
 
 
 def write_candidates(rendered: dict[str, RenderedCandidates], out: Path, n: int) -> None:

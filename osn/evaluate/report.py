@@ -21,6 +21,20 @@ METRICS = [("psnr", "PSNR ↑", "{:.2f}"), ("ssim", "SSIM ↑", "{:.3f}"), ("lpi
            ("ssimae", "SSIMAE ↓", "{:.3f}"), ("pq", "PQ ↑", "{:.1f}"), ("miou", "mIoU ↑", "{:.1f}")]
 
 
+def _unposed_lines(e: dict[str, Any]) -> list[str]:
+    """A paragraph on objects the run could not place at some test timestamps (none: no lines)."""
+    objs = e.get("unposed_objects") or {}
+    if not objs:
+        return []
+    names = "; ".join(f"{n} at t = {', '.join(map(str, ts))}" for n, ts in objs.items())
+    return [
+        f"Objects without a pose at a test view's timestamp (they left the training view, or were not registered): "
+        f"{names}. The run renders nothing for them there: {100 * e['unposed_object_fraction']:.2f}% of the co-visible "
+        "test pixels show such an object and count as errors in every figure below.",
+        "",
+    ]
+
+
 def _fmt(ms: list[float], f: str) -> str:
     return f"{f.format(ms[0])} ± {f.format(ms[1])}"
 
@@ -140,6 +154,7 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         "with the training video (the rest are masked out). Each ground truth is matched to the sample with the "
         "best mean PSNR over its views (best of N); the baselines commit to one solution of the same model.",
         "",
+        *_unposed_lines(e),
         results_table(res.table),
         "",
         "| figure | value |",

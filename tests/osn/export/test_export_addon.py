@@ -415,6 +415,20 @@ def test_trajectories_equal_exported_poses(blender, exported) -> None:
         np.testing.assert_allclose(np.array(rec["test_camera"]), opengl_from_opencv(scene.test_cameras[0, t]), atol=2e-5)
 
 
+def test_objects_are_hidden_at_frames_without_a_pose(blender, exported) -> None:
+    """An object that left the view at some frames is hidden there, not held at its last pose."""
+    res, _ = blender
+    scene, _, _ = exported
+    for frame, hidden in res["hidden"].items():
+        t = int(frame) - 1
+        for o in scene.objects:
+            parts = [n for n in hidden if n.startswith(f"{o.name} ")]
+            assert parts, o.name
+            for n in parts:
+                assert hidden[n] == [t not in o.frames] * 2, (n, frame)
+    assert any(any(v[0] for v in h.values()) for h in res["hidden"].values())  # the case is exercised
+
+
 def test_slider_limits_and_handler_rekey(blender, exported) -> None:
     res, _ = blender
     scene, _, _ = exported
@@ -614,6 +628,12 @@ def _blender_main(args: dict) -> None:
             "camera": [list(r) for r in bpy.data.objects["OSN training camera"].matrix_world],
             "test_camera": [list(r) for r in bpy.data.objects["OSN test camera 0"].matrix_world],
         })
+
+    # Which parts are shown at each frame (sphere2 has no pose at t = 2, Blender frame 3).
+    res["hidden"] = {}
+    for frame in range(1, 5):
+        scene.frame_set(frame)
+        res["hidden"][frame] = {o.name: [o.hide_render, o.hide_viewport] for o in coll.objects if o.type in ("VOLUME", "MESH")}
 
     res["validity"] = []
     for cfg in (CONFIG_A, CONFIG_B, CONFIG_INVALID, [1.0, 0.9, 1.1]):
