@@ -199,6 +199,22 @@ def test_crease_hits_get_the_pixel_budget_not_the_interior_limit():
     assert compare_training(base_rgb, ids, rgb, ids, base_facing)["max_interior_diff"] > 0.019
 
 
+def test_a_pixel_flipping_across_a_texture_edge_gets_the_pixel_budget():
+    """A checker edge through a pixel centre: rounding may put the hit on the other square (seen
+    on gnome-house at 128 px). Such a flip goes to the budget; any other colour change does not."""
+    ids = np.zeros((6, 6), dtype=np.uint8)
+    base = np.full((6, 6, 3), 0.2)
+    base[:, 3:] = 0.7  # a checker edge between columns 2 and 3
+    rgb = base.copy()
+    rgb[2, 3] = 0.2 + 1e-6  # pixel (2, 3) flipped to the dark square
+    stats = compare_training(base, ids, rgb, ids)
+    assert stats["max_interior_diff"] == 0.0 and stats["texture_edge_flips"] == 1
+    assert stats["differing_fraction"] == 1 / 36
+    rgb[2, 4] = 0.7 - 0.3  # moved, but not to a neighbour's colour: caught
+    stats = compare_training(base, ids, rgb, ids)
+    assert abs(stats["max_interior_diff"] - 0.3) < 1e-12 and stats["texture_edge_flips"] == 1
+
+
 def test_demo_preset_is_gnome_house_at_demo_size():
     demo, full = load_preset("gnome-house-demo").to_dict(), load_preset("gnome-house").to_dict()
     assert demo["rig"].pop("test_views") == 30 and full["rig"].pop("test_views") == 0

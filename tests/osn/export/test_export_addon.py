@@ -674,7 +674,13 @@ def _blender_main(args: dict) -> None:
         sb.set_scales(coll, np.array(cfg))
         for o in coll.objects:
             if o.type in {"MESH", "VOLUME"}:
-                # Volume renders show the spheres only: a dense wall volume costs a minute.
+                # Volume renders show the spheres only: a dense wall volume costs a minute. The
+                # import keys hide_render where an object has no pose; those keys would override
+                # a manual setting at render time, so they go first.
+                fcurves = sb._fcurve_collection(o, create=False)
+                keyed = fcurves.find("hide_render") if fcurves is not None else None
+                if keyed is not None:
+                    fcurves.remove(keyed)
                 o.hide_render = (o.type == "VOLUME") != volumes or (volumes and o.parent.name == "wall")
         scene.camera = bpy.data.objects[camera]
         path = str(work / f"{name}.exr")
