@@ -64,18 +64,19 @@ class OrderConstraints:
         return torch.tensor([len(t) for t in self.thresholds], dtype=torch.float64)
 
 
-def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tensor) -> OrderConstraints:
+def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tensor, minority: float = 0.0) -> OrderConstraints:
     """Constraints of rays with label ``gt (R,)``, depths ``(R, K)`` and coverage ``(R, K)``.
 
     Rays whose labelled object does not cover them, or that no other object covers, constrain
-    nothing and are left out.
+    nothing and are left out. A pair ``(i, j)`` with fewer than ``minority`` times the rays of
+    its opposite ``(j, i)`` is left out too (:func:`minority_pairs`).
     """
     K = covered.shape[1]
     logd = torch.log(depth.double().clamp_min(1e-300))
     valid = (gt >= 0) & (gt < K)
     g = gt.clamp(0, K - 1)
     own = covered.gather(1, g[:, None])[:, 0] & valid
-    pairs, thresholds = [], []
+    found: dict[tuple[int, int], torch.Tensor] = {}
     for i in range(K):
         rows = own & (g == i)
         if not bool(rows.any()):
@@ -85,9 +86,26 @@ def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tens
                 continue
             m = rows & covered[:, j]
             if bool(m.any()):
-                pairs.append((i, j))
-                thresholds.append(torch.sort(logd[m, j] - logd[m, i]).values.contiguous())
-    return OrderConstraints(pairs, thresholds, int((own & (covered.sum(1) >= 2)).sum()))
+                found[(i, j)] = torch.sort(logd[m, j] - logd[m, i]).values.contiguous()
+    drop = minority_pairs({p: len(t) for p, t in found.items()}, minority)
+    pairs = [p for p in found if p not in drop]
+    return OrderConstraints(pairs, [found[p] for p in pairs], int((own & (covered.sum(1) >= 2)).sum()))
+
+
+def minority_pairs(counts: dict[tuple[int, int], int], minority: float) -> set[tuple[int, int]]:
+    """The pairs ``(i, j)`` whose ray count is below ``minority`` times that of ``(j, i)``.
+
+    On the pixels two objects share, one of them is in front. When ``j`` covers many pixels
+    labelled ``i`` ("``i`` in front") and ``i`` covers a few labelled ``j``, those few are almost
+    always ``i``'s field filling a gap it cannot resolve (the table seen between a chair's legs,
+    a silhouette one pixel too wide) rather than the two objects interleaving: measured on
+    dining-table and chessboard at 64 px, every such minority pair was violated on all its rays by
+    every exact configuration, and kept, it empties the learned valid set. Dropping a genuine
+    minority pair only loosens a bound.
+    """
+    if minority <= 0:
+        return set()
+    return {(i, j) for (i, j), n in counts.items() if n < minority * counts.get((j, i), 0)}
 
 
 def trimmed_labels(pair_violations: torch.Tensor, sizes: torch.Tensor, trim: float) -> torch.Tensor:

@@ -18,8 +18,8 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_width", "scale_layers"
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
-                 "free_band", "label_rays", "label_erode", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "coverage_threshold", "uncertain_acc", "scale_lr_final")
+                 "free_band", "free_band_objects", "label_rays", "label_erode", "label_stride")
+_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
 
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
@@ -28,7 +28,7 @@ _RULES: dict[str, Rule] = {
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
     # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
     "valid_threshold": number(0.0, 1.0, hi_open=True),
-    "free_space": choice("none", "anchor", "all"),
+    "free_space": choice("none", "anchor", "objects", "all"),
 }
 
 
@@ -57,23 +57,25 @@ class TrainConfig:
     w_seg: float = 0.01
     w_opacity: float = 1.0
     w_free: float = 1.0
-    w_alone: float = 0.0
-    free_space: str = "anchor"
+    w_alone: float = 1.0
+    free_space: str = "objects"
     free_rays: int = 128
     free_band: int = 4
+    free_band_objects: int = 1
     scale_width: int = 64
     scale_layers: int = 4
     scale_lr: float = 5e-3
-    scale_lr_final: float = 1.0
+    scale_lr_final: float = 0.1
     scale_samples: int = 1024
     label_rays: int = 0
     label_replay: float = 0.5
     label_samples: int = 24
     label_trim: float = 0.01
+    pair_minority: float = 0.2
     label_erode: int = 0
     label_stride: int = 0
     coverage_threshold: float = 0.9
-    uncertain_acc: float = 0.05
+    uncertain_acc: float = 0.9
     valid_threshold: float = 0.95
     candidates: int = 4096
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)

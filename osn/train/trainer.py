@@ -64,7 +64,7 @@ class Trainer:
         self.positives = torch.zeros(0, max(K - 1, 1))
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
         self.bg = torch.tensor(cfg.background, device=device)
-        self.free = self.st.free_pixels(cfg.free_space, cfg.free_band)
+        self.free = self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects)
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
@@ -264,7 +264,7 @@ class Trainer:
         if self.cfg.label_rays <= 0 or self.cfg.label_rays >= n:
             return c["constraints"]
         r = self._randint(n, self.cfg.label_rays)
-        return order_constraints(c["depth"][r], c["covered"][r], c["gt"][r])
+        return order_constraints(c["depth"][r], c["covered"][r], c["gt"][r], self.cfg.pair_minority)
 
     def _scale_samples(self) -> torch.Tensor:
         """Normalised free scales ``(scale_samples, K-1)`` for one scale step: uniform in the

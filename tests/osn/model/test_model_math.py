@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.depth_order import order_constraints, trimmed_labels
+from osn.model.depth_order import minority_pairs, order_constraints, trimmed_labels
 from osn.model.volume import ObjectRays, ray_box, render, transmittance_weights
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -218,6 +218,30 @@ def test_order_constraints_count_what_the_z_buffer_gets_wrong(K: int, R: int, H:
     single = order_constraints(depth[two], covered[two], gt[two])
     assert torch.equal(single.violations(sbar), (wrong & two[None]).sum(1).double())
     assert torch.equal(v == 0, ~(wrong & contested[None]).any(1))
+
+
+def test_minority_pairs_are_dropped_against_their_opposite_pair() -> None:
+    """A chair (1) in front of a table (2) on 40 rays and a 'table in front' bleed on 3: the 3
+    go at ``minority`` 0.2 (3 < 8), not at 0.05 (3 >= 2); a pair without an opposite stays."""
+    counts = {(1, 2): 40, (2, 1): 3, (0, 1): 5}
+    assert minority_pairs(counts, 0.2) == {(2, 1)}
+    assert minority_pairs(counts, 0.05) == set() and minority_pairs(counts, 0.0) == set()
+    # Built from rays: the bleed rays are labelled 2 and covered by 1 nearer than 2's own depth.
+    R = 43
+    depth = torch.ones(R, 3)
+    depth[:40, 2] = 2.0  # chair in front of the table: label 1, table 2 behind (ratio 2)
+    depth[40:, 1] = 0.5  # the bleed: label 2 (table), chair covers it at half the table's depth
+    covered = torch.zeros(R, 3, dtype=torch.bool)
+    covered[:, 1] = covered[:, 2] = True
+    gt = torch.tensor([1] * 40 + [2] * 3)
+    kept = order_constraints(depth, covered, gt, minority=0.2)
+    assert kept.pairs == [(1, 2)] and kept.rays == R  # all contested, the minority pair left out
+    both = order_constraints(depth, covered, gt)
+    assert both.pairs == [(1, 2), (2, 1)]
+    # With the bleed the equal-scale configuration (in every object's unit) violates its 3 rays;
+    # without it the only constraint left is the chair staying in front (sbar_1 / sbar_2 < 2).
+    sbar = torch.tensor([[1.0, 1.0, 1.0], [1.0, 3.0, 1.0]], dtype=torch.float64)
+    assert both.violations(sbar).tolist() == [3.0, 40.0] and kept.violations(sbar).tolist() == [0.0, 40.0]
 
 
 def test_trimmed_labels_allow_the_noise_floor_plus_a_share_of_each_pair() -> None:

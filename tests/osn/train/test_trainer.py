@@ -127,7 +127,7 @@ def test_label_pool_uses_the_configured_or_automatic_stride(tiny_dataset: Path) 
 def test_free_pixels_are_the_anchor_near_each_object(tiny_dataset: Path) -> None:
     """``free_space: anchor``: an object's free pixels show the anchor (or nothing), lie within
     ``free_band`` pixels of its mask, in frames where it is present; the anchor gets none."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(free_space="anchor"), torch.device("cpu"))
     st, band = tr.st, tr.cfg.free_band
     lab = st.labels.reshape(st.T, st.H, st.W)
     for k in range(st.K):
@@ -144,6 +144,33 @@ def test_free_pixels_are_the_anchor_near_each_object(tiny_dataset: Path) -> None
     assert all(len(f) == 0 for f in st.free_pixels("none", band))
     with pytest.raises(ValueError, match="free_space"):
         Trainer(oracle_inputs(tiny_dataset), _cfg(free_space="walls"), torch.device("cpu"))
+
+
+def test_free_pixels_objects_mode_also_carves_other_objects_next_to_the_mask(tiny_dataset: Path) -> None:
+    """``free_space: objects``: what ``anchor`` gives, plus, for every object but the anchor, the
+    pixels of other objects within ``free_band_objects`` of its mask (a field filling the gap
+    between a chair's legs covers the table seen through it); the anchor is never carved there."""
+    st = SceneTensors(oracle_inputs(tiny_dataset), torch.device("cpu"))
+    lab = st.labels.reshape(st.T, st.H, st.W)
+    anchor = st.free_pixels("anchor", 4)
+    for ob in (1, 2):
+        objects = st.free_pixels("objects", 4, ob)
+        for k in range(st.K):
+            base, more = set(anchor[k].tolist()), set(objects[k].tolist())
+            assert base <= more
+            extra = torch.tensor(sorted(more - base), dtype=torch.long)
+            if k == st.anchor:
+                assert not len(extra)
+                continue
+            assert len(extra) > 0  # the two objects of the tiny scene overlap in some frame
+            t, y, x = extra // (st.H * st.W), (extra // st.W) % st.H, extra % st.W
+            assert torch.all((lab[t, y, x] >= 0) & (lab[t, y, x] != k) & (lab[t, y, x] != st.anchor))
+            for i in range(len(extra)):  # every one within the band of the object's mask
+                win = lab[t[i], max(0, y[i] - ob) : y[i] + ob + 1, max(0, x[i] - ob) : x[i] + ob + 1]
+                assert (win == k).any()
+    wide = st.free_pixels("objects", 4, 2)
+    narrow = st.free_pixels("objects", 4, 1)
+    assert sum(map(len, wide)) > sum(map(len, narrow))
 
 
 def test_free_space_loss_stops_objects_bleeding_past_their_silhouette(tiny_dataset: Path) -> None:
