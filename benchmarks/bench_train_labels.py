@@ -28,6 +28,7 @@ import yaml
 from osn.preprocess.inputs import load_inputs
 from osn.model.scale_net import full_sbar
 from osn.model.depth_order import trimmed_labels
+from scenecore.validity import set_accuracy
 from osn.cli.train import dataset_region
 from osn.train import Phase, TrainConfig, Trainer, TrainingMonitor
 
@@ -67,14 +68,18 @@ def main() -> None:
         b = np.exp(thr.numpy()) * units[j] / units[i]  # bound on actual_i / actual_j
         exact_b = ev.region.ratio_bounds[ids[i]][ids[j]]
         print(f"pair {ids[i]} in front of {ids[j]}: {len(b)} rays, bound min {b[0]:.3f} trimmed {b[int(cfg.label_trim * len(b))]:.3f} exact {exact_b}")
-    pv = cons.pair_violations(full_sbar(ev.s_mc.float(), st.ranges, st.anchor))
+    s_all = torch.cat(ev.s_mc).float()  # the monitor's uniform and inner points (stratified)
+    pv = cons.pair_violations(full_sbar(s_all, st.ranges, st.anchor))
     err = pv.sum(1)
-    lab = trimmed_labels(pv, cons.sizes(), cfg.label_trim).bool()
-    inter = float((lab & exact).sum())
+    lab = trimmed_labels(pv, cons.sizes(), cfg.label_trim).bool().numpy()
+    n = len(ev.s_mc[0])
+    acc = set_accuracy(ev.points, lab[:n], lab[n:])
+    inner_err = err[n:][exact]
     print(
-        f"pool {cons.rays} rays, {cons.count} constraints; exact configurations violate {float(err[exact].min()):.0f}-{float(err[exact].max()):.0f}, "
-        f"lowest {float(err.min()):.0f}; labelled set {float(lab.double().mean()):.4f} of the box (exact {float(exact.double().mean()):.4f}): "
-        f"IoU {inter / max(float((lab | exact).sum()), 1):.3f} precision {inter / max(float(lab.sum()), 1):.3f} recall {inter / max(float(exact.sum()), 1):.3f}",
+        f"pool {cons.rays} rays, {cons.count} constraints; exact configurations violate "
+        f"{float(inner_err.min()) if len(inner_err) else float('nan'):.0f}-{float(inner_err.max()) if len(inner_err) else float('nan'):.0f}, "
+        f"lowest {float(err.min()):.0f}; labelled set {acc['learned_fraction']:.3g} of the box (exact {acc['exact_fraction']:.3g}, "
+        f"{acc['exact_points']} points): IoU {acc['iou']:.3f} precision {acc['precision']:.3f} recall {acc['recall']:.3f}",
         flush=True,
     )
     tr.gen.manual_seed(cfg.seed)

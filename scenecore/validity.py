@@ -162,6 +162,25 @@ class ValidRegion:
         return m > log_margin
 
 
+def _inner_box(region: ValidRegion, box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """``(free, lo, hi, volume)``: the product of the region's intervals cut to ``box (K, 2)``
+    (it holds the whole region inside the box) and its share of the box's volume (0 if empty).
+    ``free``: the objects sampled, i.e. all but the anchor and those with ``lo == hi`` in
+    ``box`` (held at that scale, e.g. an object a run does not model)."""
+    box = np.asarray(box, dtype=np.float64)
+    others = np.array([k != region.anchor for k in range(region.num_objects)])
+    if box.shape != (region.num_objects, 2) or not np.all(box[others, 1] >= box[others, 0]):
+        raise ValueError(f"box must be ({region.num_objects}, 2) with lo < hi for every free object, got {box.tolist()}")
+    free = others & (box[:, 1] > box[:, 0])
+    if not free.any():
+        raise ValueError(f"box {box.tolist()} leaves no object free")
+    lo = np.maximum(box[:, 0], region.intervals[:, 0])
+    hi = np.minimum(box[:, 1], region.intervals[:, 1])
+    if np.any(hi[free] <= lo[free]):
+        return free, lo, hi, 0.0
+    return free, lo, hi, float(np.exp(np.sum(np.log((hi[free] - lo[free]) / (box[free, 1] - box[free, 0])))))
+
+
 def box_share(region: ValidRegion, box: np.ndarray, samples: int = 200_000, seed: int = 0, chunk: int = 50_000) -> tuple[float, float]:
     """Share of a scale box that is valid, under the uniform (linear) measure a sampler draws from.
 
@@ -175,21 +194,86 @@ def box_share(region: ValidRegion, box: np.ndarray, samples: int = 200_000, seed
         points are drawn in that product cut to the box and the hit rate is multiplied by the
         sub-box's share of the box's volume: shares of 1e-6 and below stay measurable.
     """
-    box = np.asarray(box, dtype=np.float64)
-    free = np.array([k != region.anchor for k in range(region.num_objects)])
-    if box.shape != (region.num_objects, 2) or not np.all(box[free, 1] > box[free, 0]):
-        raise ValueError(f"box must be ({region.num_objects}, 2) with lo < hi for every free object, got {box.tolist()}")
-    lo = np.maximum(box[:, 0], region.intervals[:, 0])
-    hi = np.minimum(box[:, 1], region.intervals[:, 1])
-    if np.any(hi[free] <= lo[free]):
+    free, lo, hi, volume = _inner_box(region, box)
+    if volume == 0.0:
         return 0.0, 0.0
-    volume = float(np.exp(np.sum(np.log((hi[free] - lo[free]) / (box[free, 1] - box[free, 0])))))
     rng = np.random.default_rng(seed)
     hits = 0
     for start in range(0, samples, chunk):
         n = min(chunk, samples - start)
-        s = np.ones((n, region.num_objects))
+        s = np.repeat(np.where(free | (np.arange(len(lo)) == region.anchor), 1.0, np.asarray(box, float)[:, 0])[None], n, 0)
         s[:, free] = lo[free] + (hi[free] - lo[free]) * rng.random((n, int(free.sum())))
         hits += int(np.count_nonzero(region.contains(s)))
     p = hits / samples
     return volume * p, volume * float(np.sqrt(p * (1 - p) / samples))
+
+
+@dataclass
+class SetSamples:
+    """Fixed points for measuring a learned valid set against the exact region (see :func:`set_accuracy`).
+
+    Attributes:
+        uniform: ``(n, K)`` scales uniform in the box (the anchor at 1).
+        inner: ``(n, K)`` scales uniform in the inner box (the region's intervals cut to the box).
+        in_inner: ``(n,)`` which ``uniform`` points lie in the inner box.
+        exact: ``(n,)`` which ``inner`` points lie in the region.
+        inner_volume: the inner box's share of the box's volume (0 when the region misses the box).
+    """
+
+    uniform: np.ndarray
+    inner: np.ndarray
+    in_inner: np.ndarray
+    exact: np.ndarray
+    inner_volume: float
+
+
+def set_samples(region: ValidRegion, box: np.ndarray, samples: int, seed: int = 0) -> SetSamples:
+    """``samples`` points uniform in ``box (K, 2)`` and as many in the inner box (stratified).
+
+    A learned set is compared with a region that may fill 1e-6 of the box (8 objects): uniform
+    points alone would hold none of it. Every region point lies in the inner box, so drawing there
+    measures the region and its overlap with the learned set at a rate ``1 / inner_volume`` higher.
+    """
+    free, lo, hi, volume = _inner_box(region, box)
+    box = np.asarray(box, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    K, f = region.num_objects, int(free.sum())
+    fixed = np.where(free | (np.arange(K) == region.anchor), 1.0, box[:, 0])
+    uniform = np.repeat(fixed[None], samples, 0)
+    uniform[:, free] = box[free, 0] + (box[free, 1] - box[free, 0]) * rng.random((samples, f))
+    inner = uniform.copy()
+    if volume > 0:
+        inner[:, free] = lo[free] + (hi[free] - lo[free]) * rng.random((samples, f))
+        in_inner = np.all((uniform[:, free] > lo[free]) & (uniform[:, free] < hi[free]), axis=1)
+        exact = np.asarray(region.contains(inner), dtype=bool)
+    else:
+        in_inner = np.zeros(samples, dtype=bool)
+        exact = np.zeros(samples, dtype=bool)
+    return SetSamples(uniform, inner, in_inner, exact, volume)
+
+
+def set_accuracy(samples: SetSamples, learned_uniform: np.ndarray, learned_inner: np.ndarray) -> dict[str, float]:
+    """Precision, recall and IoU of a learned set (its membership at ``samples.uniform`` and
+    ``samples.inner``, ``(n,)`` bool each) against the exact region, as shares of the box.
+
+    Unbiased stratified estimates: the learned set's share is its share outside the inner box
+    (uniform points) plus ``inner_volume`` times its share inside (inner points); the region and
+    the overlap lie inside, so they come from the inner points only. An empty learned set has
+    precision 0. ``exact_points`` (region points drawn) says how well the region was resolved;
+    with none of them recall and IoU are NaN, not a number that looks measured.
+    """
+    v = samples.inner_volume
+    lu, li = np.asarray(learned_uniform, bool), np.asarray(learned_inner, bool)
+    learned = float(np.mean(lu & ~samples.in_inner)) + v * float(np.mean(li))
+    exact = v * float(np.mean(samples.exact))
+    both = v * float(np.mean(li & samples.exact))
+    points = int(np.count_nonzero(samples.exact))
+    nan = float("nan")
+    return {
+        "precision": both / learned if learned > 0 else 0.0,
+        "recall": both / exact if points else nan,
+        "iou": both / (learned + exact - both) if points else nan,
+        "exact_fraction": exact,
+        "learned_fraction": learned,
+        "exact_points": points,
+    }

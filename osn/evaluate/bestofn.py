@@ -48,7 +48,8 @@ class EvalConfig:
         levels: quantised scales per object for the layered search (at least 2).
         topk: candidates per ground truth rendered exactly before the match is decided.
         lpips: compute LPIPS (needs the weights installed by ``make setup``).
-        grid: points per axis of the dense grid for the valid-set accuracy (Monte Carlo above 3 axes).
+        valid_points: Monte-Carlo points of the valid-set accuracy, as many again in the exact
+            region's interval box (stratified; :func:`osn.evaluate.valid_set.valid_set_accuracy`).
         seed: seed of Monte-Carlo points.
     """
 
@@ -56,7 +57,7 @@ class EvalConfig:
     levels: int = 24
     topk: int = 2
     lpips: bool = True
-    grid: int = 64
+    valid_points: int = 200_000
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -65,7 +66,7 @@ class EvalConfig:
             "levels": integer(2),
             "topk": integer(1),
             "lpips": flag(),
-            "grid": integer(2),
+            "valid_points": integer(1000),
             "seed": integer(0),
         })
 
@@ -169,7 +170,7 @@ def evaluate(
     # it needs were checked above (ground_truth_problem).
     actual = actual_scales(run.inputs, samples.sbar[match])
     scale_err = relative_scale_errors(actual, truth.scales, [o.id for o in run.inputs.objects], truth.scene.anchor_id)
-    valid = valid_set_accuracy(run, region, cfg.grid, cfg.seed)
+    valid = valid_set_accuracy(run, region, cfg.valid_points, cfg.seed)
     curves = evaluation_curves(run, samples, truth, res.matrix, cand, cfg.levels)
     curves["validity_profile"] = widest_object_profile(run, region, truth.scales)
     approx_match = np.nanargmax(np.nan_to_num(approx_mean, nan=-np.inf), axis=0)

@@ -48,3 +48,25 @@ def ground_truth_problem(inputs: SceneInputs, test_views: bool = True) -> str | 
     if test_views and inputs.world_to_anchor is None:
         return "no world-to-anchor alignment, so test cameras cannot be placed"
     return None
+
+
+def dataset_box(inputs: SceneInputs, ranges: np.ndarray, num_dataset_objects: int) -> np.ndarray:
+    """The sampling box of the scale network, ``ranges (K, 2)`` (Eq. 1, the inputs' units), in
+    dataset scales ``(num_dataset_objects, 2)``; the anchor and objects the inputs leave out are
+    held at 1 (``[1, 1]``)."""
+    box = np.ones((num_dataset_objects, 2))
+    ids = [o.id for o in inputs.objects]
+    box[ids] = actual_scales(inputs, np.asarray(ranges, dtype=np.float64).T).T
+    box[ids[inputs.anchor_pos]] = 1.0
+    return box
+
+
+def free_normalised(inputs: SceneInputs, ranges: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Dataset scales ``(N, num_dataset_objects)`` -> the scale network's input, the free
+    normalised scales ``(N, K-1)`` (Eq. 1 inverted in the inputs' units, anchor dropped)."""
+    ids = [o.id for o in inputs.objects]
+    sbar = true_scales(inputs, np.asarray(scales, dtype=np.float64)[:, ids])
+    ranges = np.asarray(ranges, dtype=np.float64)
+    s = (sbar - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
+    return np.delete(s, inputs.anchor_pos, axis=1)
+

@@ -6,38 +6,29 @@ from typing import Any
 
 import numpy as np
 
+from scenecore.validity import ValidRegion, set_accuracy, set_samples
+
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
 from osn.preprocess.inputs import normalise_scales
-from osn.evaluate.units import actual_scales, true_scales
+from osn.evaluate.units import actual_scales, dataset_box, free_normalised, true_scales
 
 
-def valid_set_accuracy(run: TrainedRun, region, grid: int = 64, seed: int = 0, max_points: int = 300_000) -> dict[str, float]:
+def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_000, seed: int = 0) -> dict[str, float]:
     """Precision / recall / IoU of the learned valid set (score > VALID_THRESHOLD) against the exact region.
 
-    Evaluated on a dense grid of the normalised box (cell centres) for up to 3 free objects, on
-    ``max_points`` uniform points beyond. Needs the inputs' ground-truth units (oracle or aligned SfM).
+    Stratified Monte Carlo (:func:`scenecore.validity.set_samples`): ``points`` uniform in the
+    scale network's box and as many in the product of the region's intervals, so a region of
+    1e-6 of the box (8 objects) is resolved as well as one of 1e-2. Needs the inputs'
+    ground-truth units (oracle or aligned SfM). ``exact_points`` says how many region points
+    were drawn; with none, recall and IoU are NaN.
     """
     K = run.inputs.num_objects
     if K == 1:
         return {"precision": 1.0, "recall": 1.0, "iou": 1.0, "points": 0}
-    d = K - 1
-    if grid ** d <= max_points:
-        axes = [(np.arange(grid) + 0.5) / grid] * d
-        s = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
-    else:
-        s = np.random.default_rng(seed).random((max_points, d))
-    learned = run.scores(s) > VALID_THRESHOLD
-    exact = _exactly_valid(run, region, actual_scales(run.inputs, run.sbar(s)))
-    inter = float(np.sum(learned & exact))
-    return {
-        "precision": inter / max(float(learned.sum()), 1.0),
-        "recall": inter / max(float(exact.sum()), 1.0),
-        "iou": inter / max(float(np.sum(learned | exact)), 1.0),
-        "points": int(len(s)),
-        "exact_fraction": float(exact.mean()),
-        "learned_fraction": float(learned.mean()),
-    }
+    pts = set_samples(region, dataset_box(run.inputs, run.ranges, region.num_objects), points, seed)
+    learned = [run.scores(free_normalised(run.inputs, run.ranges, x)) > VALID_THRESHOLD for x in (pts.uniform, pts.inner)]
+    return {**set_accuracy(pts, *learned), "points": 2 * points}
 
 
 def _exactly_valid(run: TrainedRun, region, actual: np.ndarray) -> np.ndarray:

@@ -13,10 +13,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from scenecore.validity import ValidRegion
+from scenecore.validity import ValidRegion, set_accuracy, set_samples
 
 from benchgen.score.metrics import psnr_from_mse as psnr
-from osn.evaluate.units import actual_scales, ground_truth_problem
+from osn.evaluate.units import dataset_box, free_normalised, ground_truth_problem
 from osn.model.scale_net import full_sbar
 from osn.model.volume import render
 from osn.train.trainer import Trainer
@@ -31,9 +31,10 @@ class TrainingMonitor:
         flat: ``(N,)`` the scored training pixels (frame * HW + pixel), fixed for the run.
         region: the exact region when valid-set accuracy is measured, else None (a single object,
             no region given, or inputs without ground-truth units).
-        s_mc: ``(M, K-1)`` float64 Monte-Carlo samples of the normalised box (with ``region``).
-        actual_mc: ``(M, K)`` their actual (dataset) scales per object position.
-        exact: ``(M,)`` bool, the sample lies in the exact region.
+        points: with ``region``, ``iou_samples`` fixed points uniform in the sampling box and as
+            many in the exact region's interval box (:class:`scenecore.validity.SetSamples`).
+        s_mc: their free normalised scales, ``[(M, K-1), (M, K-1)]`` float64 (uniform, inner).
+        exact: ``(M,)`` bool, the inner point lies in the exact region.
     """
 
     def __init__(self, trainer: Trainer, region: ValidRegion | None) -> None:
@@ -51,12 +52,14 @@ class TrainingMonitor:
             log.warning("valid-set accuracy is not measured during training: %s", problem)
         if trainer.net is not None and region is not None and not problem:
             self.region = region
-            self.s_mc = torch.rand(cfg.iou_samples, st.K - 1, generator=g, dtype=torch.float64)
-            sbar = full_sbar(self.s_mc, st.ranges.cpu(), st.anchor).numpy()
-            self.actual_mc = actual_scales(st.inputs, sbar)
-            full = np.ones((len(sbar), region.num_objects))
-            full[:, [o.id for o in st.inputs.objects]] = self.actual_mc
-            self.exact = np.asarray(region.contains(full))
+            ranges = st.ranges.cpu().numpy()
+            # Stratified points: a region of 1e-6 of the box (8 objects) has none among uniform ones.
+            self.points = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), cfg.iou_samples, seed=12345)
+            self.s_mc = [torch.from_numpy(free_normalised(st.inputs, ranges, x)) for x in (self.points.uniform, self.points.inner)]
+            self.exact = self.points.exact
+            if not self.exact.any():
+                log.warning("valid-set accuracy: none of %d points in the exact region's interval box is valid; "
+                            "recall and IoU are not measured (NaN)", cfg.iou_samples)
 
     @torch.no_grad()
     def best_configuration(self) -> torch.Tensor:
@@ -83,23 +86,25 @@ class TrainingMonitor:
             m["seg_acc"] = float((out.log_seg[ok].argmax(1) == lab[ok]).float().mean())
             m["sbar_best"] = [float(x) for x in sbar.cpu()]
         if self.region is not None:
-            learned = (tr.net(self.s_mc.float().to(tr.device)) > 0).cpu().numpy()
-            inter = float(np.sum(learned & self.exact))
-            m["precision"] = inter / max(float(learned.sum()), 1.0)
-            m["recall"] = inter / max(float(self.exact.sum()), 1.0)
-            m["iou"] = inter / max(float(np.sum(learned | self.exact)), 1.0)
-            m["scale_rel_err"] = self._interval_error(learned)
+            learned = [(tr.net(s.float().to(tr.device)) > 0).cpu().numpy() for s in self.s_mc]
+            acc = set_accuracy(self.points, *learned)
+            m.update({k: acc[k] for k in ("precision", "recall", "iou")})
+            m["scale_rel_err"] = self._interval_error(*learned)
         return m
 
-    def _interval_error(self, learned: np.ndarray) -> float:
-        """Mean relative error of the learned per-object scale intervals (actual scales, within
-        the sampled box) against the exact region's intervals; 1.0 when either set is empty."""
-        if not learned.any() or not self.exact.any():
+    def _interval_error(self, learned_uniform: np.ndarray, learned_inner: np.ndarray) -> float:
+        """Mean relative error of the learned per-object scale intervals (dataset scales, within
+        the sampled box; the learned points of both point sets) against the exact region's
+        intervals (its points); 1.0 when either set is empty."""
+        pts = self.points
+        learned = np.concatenate([pts.uniform[learned_uniform], pts.inner[learned_inner]])
+        exact = pts.inner[pts.exact]
+        if not len(learned) or not len(exact):
             return 1.0
         errs = []
-        for k in range(self.tr.st.K):
-            if k == self.tr.st.anchor:
+        for o in self.tr.st.inputs.objects:
+            if o.id == self.region.anchor:
                 continue
-            a, e = self.actual_mc[learned, k], self.actual_mc[self.exact, k]
+            a, e = learned[:, o.id], exact[:, o.id]
             errs += [abs(a.min() - e.min()) / e.min(), abs(a.max() - e.max()) / e.max()]
         return float(np.mean(errs))

@@ -80,3 +80,46 @@ def test_box_share_matches_the_exact_area_and_stays_measurable_when_tiny():
     assert box_share(region, np.array([[1, 1], [2.5, 4.0], [0.0, 4.0]])) == (0.0, 0.0)
     with pytest.raises(ValueError, match="lo < hi"):
         box_share(region, np.array([[1, 1], [4.0, 1.0], [0.0, 4.0]]))
+
+
+def test_set_accuracy_resolves_a_region_of_a_millionth_of_the_box():
+    """Eight objects: every free one below half the anchor's scale and object 2 in front of 1
+    fill (0.5 / 4)^7 / 2 = 2.4e-7 of the box [0, 4]^7, where 20000 uniform points find nothing.
+    The stratified points measure it, and a learned set equal to the region's interval box (the
+    pair constraint missed) has IoU and precision 1/2, recall 1; the region itself has IoU 1."""
+    from scenecore.validity import set_accuracy, set_samples
+
+    K = 8
+    B = np.full((K, K), np.inf)
+    B[1:, 0] = 0.5
+    B[2, 1] = 1.0
+    region = ValidRegion.from_bounds(B)
+    box = np.array([[1.0, 1.0]] + [[0.0, 4.0]] * (K - 1))
+    pts = set_samples(region, box, 20_000, seed=0)
+    assert not region.contains(pts.uniform).any()  # what a uniform estimate would have to go on
+    assert pts.inner_volume == pytest.approx((0.5 / 4) ** 7)
+
+    def acc(learned):
+        return set_accuracy(pts, learned(pts.uniform), learned(pts.inner))
+
+    exact = acc(region.contains)
+    assert exact["iou"] == exact["precision"] == exact["recall"] == 1.0
+    assert exact["exact_fraction"] == pytest.approx((0.5 / 4) ** 7 / 2, rel=0.03)
+    box_only = acc(lambda s: np.all(s[:, 1:] < 0.5, axis=1))
+    assert box_only["recall"] == 1.0 and box_only["iou"] == pytest.approx(0.5, abs=0.02)
+    assert box_only["precision"] == pytest.approx(box_only["iou"])
+    # A learned set reaching outside the interval box is counted through the uniform points.
+    outside = acc(lambda s: np.all(s[:, 1:] < 0.5, axis=1) | (s[:, 1] > 2.0))
+    assert outside["learned_fraction"] == pytest.approx(0.5 + box_only["learned_fraction"], abs=0.02)
+    assert outside["precision"] < 1e-5 and outside["recall"] == 1.0
+    empty = acc(lambda s: np.zeros(len(s), bool))
+    assert empty["iou"] == empty["precision"] == empty["recall"] == 0.0
+    # A region that misses the box: nothing to measure against, NaN rather than a number.
+    far = set_samples(region, np.array([[1.0, 1.0]] + [[1.0, 4.0]] * (K - 1)), 1000)
+    missed = set_accuracy(far, region.contains(far.uniform), region.contains(far.inner))
+    assert far.inner_volume == 0.0 and missed["exact_points"] == 0 and np.isnan(missed["iou"]) and np.isnan(missed["recall"])
+    # An object the learned set does not model is held at its box value (lo == hi).
+    held = box.copy()
+    held[3] = [0.25, 0.25]
+    pts3 = set_samples(region, held, 5000)
+    assert np.all(pts3.uniform[:, 3] == 0.25) and np.all(pts3.inner[:, 3] == 0.25)

@@ -77,10 +77,10 @@ def test_relative_scale_errors_skip_the_anchor_and_index_truth_by_object_id():
     ("levels", 1, "levels must be an integer >= 2, got 1"),
     ("topk", 0, "topk must be an integer >= 1, got 0"),
     ("lpips", "yes", "lpips must be true or false"),
-    ("grid", 1.5, "grid must be an integer >= 2"),
+    ("valid_points", 10, "valid_points must be an integer >= 1000"),
     ("seed", -3, "seed must be an integer >= 0"),
 ])
 def test_eval_config_rejects_bad_values(field, value, phrase):
     with pytest.raises(ValueError, match=f"evaluate config: {phrase}"):
         EvalConfig(**{field: value})
-    EvalConfig(max_views=0, levels=2, topk=1, lpips=False, grid=2)  # the smallest accepted values
+    EvalConfig(max_views=0, levels=2, topk=1, lpips=False, valid_points=1000)  # the smallest accepted values
