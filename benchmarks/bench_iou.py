@@ -67,6 +67,8 @@ def run_variant(dataset: str, name: str, base: dict, inputs_dir: str | None, wor
     inputs = load_inputs(inputs_dir) if inputs_dir else oracle_inputs(dataset)
     total = build_schedule(cfg, inputs.num_objects)[-1].end
     done = metrics.exists() and any(json.loads(l)["iteration"] == total for l in metrics.read_text().splitlines())
+    if done and TrainConfig.from_yaml(out / "config.yaml") != cfg:
+        raise SystemExit(f"{out} holds a run of another config (the defaults changed?); remove it or pick another --work")
     if not done:
         if out.exists():
             raise SystemExit(f"{out} holds an unfinished run; remove it or pick another --work")
