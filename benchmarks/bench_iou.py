@@ -15,7 +15,7 @@ of all runs at the end (final and best IoU, PSNR, wall time). Variants (override
   (``uncertain_acc: 0.05``), every object pair kept (``pair_minority: 0``);
 * ``after``: today's defaults (``free_space: objects`` with ``free_band_objects: 1``,
   ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``, ``pair_minority: 0.2``);
-* ``after-trim003``: ``after`` with ``label_trim: 0.003``;
+* ``after-trim002``: ``after`` with ``label_trim: 0.002``;
 * ``no-minority``, ``no-objects``, ``no-alone``, ``uncertain``: ``after`` without one option.
 
 ``key=value`` override every variant's config (e.g. ``rounds=2``). Runs that already finished in
@@ -46,7 +46,7 @@ AFTER: dict = {}
 VARIANTS = {
     "before": {"free_space": "anchor", "w_alone": 0.0, "scale_lr_final": 1.0, "uncertain_acc": 0.05, "pair_minority": 0.0},
     "after": AFTER,
-    "after-trim003": {"label_trim": 0.003},
+    "after-trim002": {"label_trim": 0.002},
     "no-minority": {"pair_minority": 0.0},
     "no-objects": {"free_space": "anchor"},
     "no-alone": {"w_alone": 0.0},
