@@ -60,7 +60,7 @@ def main() -> None:
         raise SystemExit(f"{run}: the dataset has no valid_region.json")
     phase = Phase("scale", 10**9, 10**9 + a.steps, 1)
     tr.ensure_cache(phase)
-    exact = torch.from_numpy(ev.exact)
+    exact = torch.from_numpy(ev.points.exact)
     st, cons = tr.st, tr.cache["constraints"]
     units = np.array([o.unit_to_world for o in st.inputs.objects])
     ids = [o.id for o in st.inputs.objects]
@@ -75,9 +75,9 @@ def main() -> None:
     n = len(ev.s_mc[0])
     acc = set_accuracy(ev.points, lab[:n], lab[n:])
     inner_err = err[n:][exact]
+    spread = f"{float(inner_err.min()):.0f}-{float(inner_err.max()):.0f}" if len(inner_err) else "n/a (no region point drawn)"
     print(
-        f"pool {cons.rays} rays, {cons.count} constraints; exact configurations violate "
-        f"{float(inner_err.min()) if len(inner_err) else float('nan'):.0f}-{float(inner_err.max()) if len(inner_err) else float('nan'):.0f}, "
+        f"pool {cons.rays} rays, {cons.count} constraints; exact configurations violate {spread}, "
         f"lowest {float(err.min()):.0f}; labelled set {acc['learned_fraction']:.3g} of the box (exact {acc['exact_fraction']:.3g}, "
         f"{acc['exact_points']} points): IoU {acc['iou']:.3f} precision {acc['precision']:.3f} recall {acc['recall']:.3f}",
         flush=True,

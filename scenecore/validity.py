@@ -162,11 +162,31 @@ class ValidRegion:
         return m > log_margin
 
 
-def _inner_box(region: ValidRegion, box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """``(free, lo, hi, volume)``: the product of the region's intervals cut to ``box (K, 2)``
-    (it holds the whole region inside the box) and its share of the box's volume (0 if empty).
-    ``free``: the objects sampled, i.e. all but the anchor and those with ``lo == hi`` in
-    ``box`` (held at that scale, e.g. an object a run does not model)."""
+@dataclass
+class _InnerBox:
+    """The product of a region's intervals cut to a scale box: it holds the whole region inside
+    the box. ``free``: the objects sampled (all but the anchor and those with ``lo == hi`` in the
+    box, held at that scale, e.g. an object a run does not model); ``base``: the scales of the
+    others (anchor 1); ``volume``: its share of the box's volume (0 when the region misses it)."""
+
+    free: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    base: np.ndarray
+    volume: float
+
+    def draw(self, n: int, rng: np.random.Generator, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+        """``n`` scale vectors ``(n, K)`` uniform in the inner box (or in ``[lo, hi]`` per object)."""
+        lo = self.lo if lo is None else lo
+        hi = self.hi if hi is None else hi
+        s = np.repeat(self.base[None], n, 0)
+        f = self.free
+        s[:, f] = lo[f] + (hi[f] - lo[f]) * rng.random((n, int(f.sum())))
+        return s
+
+
+def _inner_box(region: ValidRegion, box: np.ndarray) -> _InnerBox:
+    """:class:`_InnerBox` of ``region`` in ``box (K, 2)``; one-line error for a malformed box."""
     box = np.asarray(box, dtype=np.float64)
     others = np.array([k != region.anchor for k in range(region.num_objects)])
     if box.shape != (region.num_objects, 2) or not np.all(box[others, 1] >= box[others, 0]):
@@ -176,9 +196,10 @@ def _inner_box(region: ValidRegion, box: np.ndarray) -> tuple[np.ndarray, np.nda
         raise ValueError(f"box {box.tolist()} leaves no object free")
     lo = np.maximum(box[:, 0], region.intervals[:, 0])
     hi = np.minimum(box[:, 1], region.intervals[:, 1])
+    base = np.where(others & ~free, box[:, 0], 1.0)
     if np.any(hi[free] <= lo[free]):
-        return free, lo, hi, 0.0
-    return free, lo, hi, float(np.exp(np.sum(np.log((hi[free] - lo[free]) / (box[free, 1] - box[free, 0])))))
+        return _InnerBox(free, lo, hi, base, 0.0)
+    return _InnerBox(free, lo, hi, base, float(np.exp(np.sum(np.log((hi[free] - lo[free]) / (box[free, 1] - box[free, 0]))))))
 
 
 def box_share(region: ValidRegion, box: np.ndarray, samples: int = 200_000, seed: int = 0, chunk: int = 50_000) -> tuple[float, float]:
@@ -194,18 +215,15 @@ def box_share(region: ValidRegion, box: np.ndarray, samples: int = 200_000, seed
         points are drawn in that product cut to the box and the hit rate is multiplied by the
         sub-box's share of the box's volume: shares of 1e-6 and below stay measurable.
     """
-    free, lo, hi, volume = _inner_box(region, box)
-    if volume == 0.0:
+    inner = _inner_box(region, box)
+    if inner.volume == 0.0:
         return 0.0, 0.0
     rng = np.random.default_rng(seed)
     hits = 0
     for start in range(0, samples, chunk):
-        n = min(chunk, samples - start)
-        s = np.repeat(np.where(free | (np.arange(len(lo)) == region.anchor), 1.0, np.asarray(box, float)[:, 0])[None], n, 0)
-        s[:, free] = lo[free] + (hi[free] - lo[free]) * rng.random((n, int(free.sum())))
-        hits += int(np.count_nonzero(region.contains(s)))
+        hits += int(np.count_nonzero(region.contains(inner.draw(min(chunk, samples - start), rng))))
     p = hits / samples
-    return volume * p, volume * float(np.sqrt(p * (1 - p) / samples))
+    return inner.volume * p, inner.volume * float(np.sqrt(p * (1 - p) / samples))
 
 
 @dataclass
@@ -234,22 +252,17 @@ def set_samples(region: ValidRegion, box: np.ndarray, samples: int, seed: int = 
     points alone would hold none of it. Every region point lies in the inner box, so drawing there
     measures the region and its overlap with the learned set at a rate ``1 / inner_volume`` higher.
     """
-    free, lo, hi, volume = _inner_box(region, box)
+    ib = _inner_box(region, box)
     box = np.asarray(box, dtype=np.float64)
     rng = np.random.default_rng(seed)
-    K, f = region.num_objects, int(free.sum())
-    fixed = np.where(free | (np.arange(K) == region.anchor), 1.0, box[:, 0])
-    uniform = np.repeat(fixed[None], samples, 0)
-    uniform[:, free] = box[free, 0] + (box[free, 1] - box[free, 0]) * rng.random((samples, f))
-    inner = uniform.copy()
-    if volume > 0:
-        inner[:, free] = lo[free] + (hi[free] - lo[free]) * rng.random((samples, f))
-        in_inner = np.all((uniform[:, free] > lo[free]) & (uniform[:, free] < hi[free]), axis=1)
-        exact = np.asarray(region.contains(inner), dtype=bool)
-    else:
-        in_inner = np.zeros(samples, dtype=bool)
-        exact = np.zeros(samples, dtype=bool)
-    return SetSamples(uniform, inner, in_inner, exact, volume)
+    uniform = ib.draw(samples, rng, box[:, 0], box[:, 1])
+    if ib.volume == 0.0:
+        none = np.zeros(samples, dtype=bool)
+        return SetSamples(uniform, uniform.copy(), none, none.copy(), 0.0)
+    inner = ib.draw(samples, rng)
+    f = ib.free
+    in_inner = np.all((uniform[:, f] > ib.lo[f]) & (uniform[:, f] < ib.hi[f]), axis=1)
+    return SetSamples(uniform, inner, in_inner, np.asarray(region.contains(inner), dtype=bool), ib.volume)
 
 
 def set_accuracy(samples: SetSamples, learned_uniform: np.ndarray, learned_inner: np.ndarray) -> dict[str, float]:

@@ -303,22 +303,18 @@ def _object(c: _Ctx, d: Any, where: str, index: int) -> ObjectSpec:
 TOP_FIELDS = {"name", "room", "objects", "rig", "resolution", "samples", "configs", "margin", "scale_range", "candidates", "seed"}
 
 
-def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None) -> SceneSpec:
-    """Build and check a ``SceneSpec`` from plain data; ``SpecError`` names ``source`` and the field."""
-    c = _Ctx(source, base_dir or Path.cwd())
-    d = c.mapping(d, "", TOP_FIELDS)
-    for req in ("room", "objects"):
-        if req not in d:
-            raise c.fail(req, "missing")
-    room_d = c.mapping(d["room"], "room", {"size", "floor", "walls"})
+def _room(c: _Ctx, d: Any) -> RoomSpec:
+    room_d = c.mapping(d, "room", {"size", "floor", "walls"})
     if "size" not in room_d:
         raise c.fail("room.size", "missing")
-    room = RoomSpec(
+    return RoomSpec(
         c.vector(room_d["size"], "room.size", 3, positive=True),
         _texture(c, room_d.get("floor"), "room.floor", [[0.75, 0.7, 0.6], [0.3, 0.25, 0.2]]),
         _texture(c, room_d.get("walls"), "room.walls", [[0.6, 0.7, 0.75], [0.2, 0.3, 0.35]]),
     )
-    objs_d = d["objects"]
+
+
+def _objects(c: _Ctx, objs_d: Any) -> list[ObjectSpec]:
     if not isinstance(objs_d, list) or not objs_d:
         raise c.fail("objects", "expected a non-empty list")
     if len(objs_d) > 254:
@@ -328,7 +324,11 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
     dup = sorted({n for n in names if names.count(n) > 1} | ({"room"} & set(names)))
     if dup:
         raise c.fail("objects", f"duplicate or reserved object name {dup[0]!r}")
-    rd = c.mapping(d.get("rig", {}), "rig", set(RigSpec.__dataclass_fields__))
+    return objects
+
+
+def _rig(c: _Ctx, d: Any) -> RigSpec:
+    rd = c.mapping(d, "rig", set(RigSpec.__dataclass_fields__))
     r = RigSpec()
     protocol = rd.get("protocol", r.protocol)
     if protocol not in RIG_PROTOCOLS:
@@ -362,11 +362,24 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         raise c.fail("rig.views", f"needs at least 2 camera positions so that there are test views, got {rig.views}")
     if not any(rig.is_test(v, t) for t in range(rig.times) for v in range(rig.views)):
         raise c.fail("rig", f"the {rig.protocol} rig has no test view")
-    res = d.get("resolution", [128, 128])
+    return rig
+
+
+def _resolution(c: _Ctx, res: Any) -> list[int]:
     res = [res, res] if isinstance(res, int) and not isinstance(res, bool) else res
     if not isinstance(res, list) or len(res) != 2:
         raise c.fail("resolution", f"expected an integer or [width, height], got {res!r}")
-    res = [c.integer(x, f"resolution[{i}]", 4) for i, x in enumerate(res)]
+    return [c.integer(x, f"resolution[{i}]", 4) for i, x in enumerate(res)]
+
+
+def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None) -> SceneSpec:
+    """Build and check a ``SceneSpec`` from plain data; ``SpecError`` names ``source`` and the field."""
+    c = _Ctx(source, base_dir or Path.cwd())
+    d = c.mapping(d, "", TOP_FIELDS)
+    for req in ("room", "objects"):
+        if req not in d:
+            raise c.fail(req, "missing")
+    room, objects, rig = _room(c, d["room"]), _objects(c, d["objects"]), _rig(c, d.get("rig", {}))
     scale_range = c.vector(d.get("scale_range", [0.3, 3.0]), "scale_range", 2, positive=True)
     if not scale_range[0] < 1.0 < scale_range[1]:
         raise c.fail("scale_range", f"must contain 1 strictly inside, got {scale_range}")
@@ -375,7 +388,7 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         room=room,
         objects=objects,
         rig=rig,
-        resolution=res,
+        resolution=_resolution(c, d.get("resolution", [128, 128])),
         samples=c.integer(d.get("samples", 1), "samples", 1),
         configs=c.integer(d.get("configs", 50), "configs", 1),
         margin=c.number(d.get("margin", 0.05), "margin", 0.0),

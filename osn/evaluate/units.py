@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from osn.preprocess.inputs import InputsError, SceneInputs
+from osn.preprocess.inputs import InputsError, SceneInputs, normalise_scales
 
 
 def _units(inputs: SceneInputs) -> np.ndarray:
@@ -66,7 +66,4 @@ def free_normalised(inputs: SceneInputs, ranges: np.ndarray, scales: np.ndarray)
     normalised scales ``(N, K-1)`` (Eq. 1 inverted in the inputs' units, anchor dropped)."""
     ids = [o.id for o in inputs.objects]
     sbar = true_scales(inputs, np.asarray(scales, dtype=np.float64)[:, ids])
-    ranges = np.asarray(ranges, dtype=np.float64)
-    s = (sbar - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
-    return np.delete(s, inputs.anchor_pos, axis=1)
-
+    return np.delete(normalise_scales(sbar, np.asarray(ranges, dtype=np.float64)), inputs.anchor_pos, axis=1)

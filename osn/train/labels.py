@@ -55,7 +55,9 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     depth = torch.full((len(flat), st.K), float("inf"), device=st.device)  # no surface where absent
     covered = torch.zeros(len(flat), st.K, dtype=torch.bool, device=st.device)
     # Some object is semi-transparent on the ray (acc between uncertain_acc and the coverage
-    # threshold): whether it "covers" is a coin flip of the threshold, so the ray is dropped.
+    # threshold): the ray can be dropped. The default (uncertain_acc = coverage_threshold) drops
+    # none: a thin part is semi-transparent wherever it is, and dropping every ray it touches lost
+    # the bounds it sets (factory's robot arm; docs/training.md).
     uncertain = torch.zeros(len(flat), dtype=torch.bool, device=st.device)
     acc = torch.zeros(len(flat), st.K, device=st.device)
     one = torch.ones(st.K, device=st.device)

@@ -34,7 +34,6 @@ class TrainingMonitor:
         points: with ``region``, ``iou_samples`` fixed points uniform in the sampling box and as
             many in the exact region's interval box (:class:`scenecore.validity.SetSamples`).
         s_mc: their free normalised scales, ``[(M, K-1), (M, K-1)]`` float64 (uniform, inner).
-        exact: ``(M,)`` bool, the inner point lies in the exact region.
     """
 
     def __init__(self, trainer: Trainer, region: ValidRegion | None) -> None:
@@ -56,8 +55,7 @@ class TrainingMonitor:
             # Stratified points: a region of 1e-6 of the box (8 objects) has none among uniform ones.
             self.points = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), cfg.iou_samples, seed=12345)
             self.s_mc = [torch.from_numpy(free_normalised(st.inputs, ranges, x)) for x in (self.points.uniform, self.points.inner)]
-            self.exact = self.points.exact
-            if not self.exact.any():
+            if not self.points.exact.any():
                 log.warning("valid-set accuracy: none of %d points in the exact region's interval box is valid; "
                             "recall and IoU are not measured (NaN)", cfg.iou_samples)
 

@@ -21,7 +21,7 @@ def test_monitor_is_exact_with_an_oracle_network(tiny_dataset: Path, tiny_region
     inputs = oracle_inputs(tiny_dataset)
     tr = Trainer(inputs, small_config(), torch.device("cpu"))
     ev = TrainingMonitor(tr, tiny_region)
-    assert 0.0 < ev.exact.mean() < 1.0  # some Monte-Carlo samples are valid, some are not
+    assert 0.0 < ev.points.exact.mean() < 1.0  # some Monte-Carlo samples are valid, some are not
     region = tiny_region
     units = np.array([o.unit_to_world for o in inputs.objects])
     ranges = tr.st.ranges.cpu().numpy()
