@@ -12,10 +12,14 @@ of all runs at the end (final and best IoU, PSNR, wall time). Variants (override
 
 * ``before``: the defaults before 2026-11-25: ``free_space: anchor``, constant scale learning
   rate, no stage-1 terms in field phases, rays dropped where any object is semi-transparent
-  (``uncertain_acc: 0.05``), every object pair kept (``pair_minority: 0``);
+  (``uncertain_acc: 0.05``), every object pair kept (``pair_minority: 0``), the final scale
+  phase like the others (``final_label_trim: 0.01``, 300 steps);
 * ``after``: today's defaults (``free_space: objects`` with ``free_band_objects: 1``,
-  ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``, ``pair_minority: 0.2``);
-* ``after-trim002``: ``after`` with ``label_trim: 0.002``;
+  ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``, ``pair_minority: 0.2``, a final
+  scale phase of 2000 steps on labels trimmed by ``final_label_trim: 0.002``);
+* ``loose-final``: ``after`` with the final scale phase like the others (``final_label_trim:
+  0.01``, 300 steps): the defaults of the morning of 2026-11-25;
+* ``tight-all``: ``loose-final`` with ``label_trim: 0.002`` in every scale phase;
 * ``no-minority``, ``no-objects``, ``no-alone``, ``uncertain``: ``after`` without one option.
 
 ``key=value`` override every variant's config (e.g. ``rounds=2``). Runs that already finished in
@@ -43,10 +47,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchutil import print_command  # noqa: E402
 
 AFTER: dict = {}
+LOOSE_FINAL = {"final_label_trim": 0.01, "final_scale_iters": 300}
 VARIANTS = {
-    "before": {"free_space": "anchor", "w_alone": 0.0, "scale_lr_final": 1.0, "uncertain_acc": 0.05, "pair_minority": 0.0},
+    "before": {"free_space": "anchor", "w_alone": 0.0, "scale_lr_final": 1.0, "uncertain_acc": 0.05, "pair_minority": 0.0,
+               **LOOSE_FINAL},
     "after": AFTER,
-    "after-trim002": {"label_trim": 0.002},
+    "loose-final": LOOSE_FINAL,
+    "tight-all": {**LOOSE_FINAL, "label_trim": 0.002, "final_label_trim": 0.002},
     "no-minority": {"pair_minority": 0.0},
     "no-objects": {"free_space": "anchor"},
     "no-alone": {"w_alone": 0.0},

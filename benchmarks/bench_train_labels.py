@@ -6,8 +6,9 @@
 ``CHECKPOINT`` a checkpoint of it whose fields are to be labelled (for example a copy of
 ``checkpoint.pt`` taken after stage 1). ``key=value`` override the run's training config (label
 pool options such as ``coverage_threshold``, ``uncertain_acc``, ``label_stride``,
-``label_erode``, ``label_trim``). Prints the pool size, per object pair the bound its rays set
-(trimmed by ``label_trim``, in dataset scales) next to the exact one, the violations of the
+``label_erode``, ``final_label_trim``). The fields are labelled as the final scale phase labels
+them. Prints the pool size, per object pair the bound its rays set (trimmed by
+``final_label_trim``, in dataset scales) next to the exact one, the violations of the
 exact configurations against the lowest (the noise floor), the IoU / precision / recall of the
 *labelled* set (``depth_order.trimmed_labels`` on the whole pool) on the evaluator's Monte-Carlo
 samples, then trains a fresh scale network for ``--steps`` scale steps on those fields and
@@ -58,7 +59,8 @@ def main() -> None:
     ev = TrainingMonitor(tr, dataset_region(json.loads((run / "run.json").read_text())["dataset"]))
     if ev.region is None:
         raise SystemExit(f"{run}: the dataset has no valid_region.json")
-    phase = Phase("scale", 10**9, 10**9 + a.steps, 1)
+    phase = Phase("scale", 10**9, 10**9 + a.steps, cfg.rounds + 1)  # the final scale phase
+    trim = tr.label_trim_at(phase)
     tr.ensure_cache(phase)
     exact = torch.from_numpy(ev.points.exact)
     st, cons = tr.st, tr.cache["constraints"]
@@ -67,11 +69,11 @@ def main() -> None:
     for (i, j), thr in zip(cons.pairs, cons.thresholds):
         b = np.exp(thr.numpy()) * units[j] / units[i]  # bound on actual_i / actual_j
         exact_b = ev.region.ratio_bounds[ids[i]][ids[j]]
-        print(f"pair {ids[i]} in front of {ids[j]}: {len(b)} rays, bound min {b[0]:.3f} trimmed {b[int(cfg.label_trim * len(b))]:.3f} exact {exact_b}")
+        print(f"pair {ids[i]} in front of {ids[j]}: {len(b)} rays, bound min {b[0]:.3f} trimmed {b[int(trim * len(b))]:.3f} exact {exact_b}")
     s_all = torch.cat(ev.s_mc).float()  # the monitor's uniform and inner points (stratified)
     pv = cons.pair_violations(full_sbar(s_all, st.ranges, st.anchor))
     err = pv.sum(1)
-    lab = trimmed_labels(pv, cons.sizes(), cfg.label_trim).bool().numpy()
+    lab = trimmed_labels(pv, cons.sizes(), trim).bool().numpy()
     n = len(ev.s_mc[0])
     acc = set_accuracy(ev.points, lab[:n], lab[n:])
     inner_err = err[n:][exact]

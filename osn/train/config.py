@@ -19,7 +19,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_width", "scale_layers"
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
                  "free_band", "free_band_objects", "label_rays", "label_erode", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
+_FRACTIONS = ("label_replay", "label_trim", "final_label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
 
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
@@ -46,7 +46,7 @@ class TrainConfig:
     rounds: int = 5
     field_iters: int = 100
     scale_iters: int = 150
-    final_scale_iters: int = 300
+    final_scale_iters: int = 2000
     rays_per_object: int = 384
     rays: int = 1024
     depth_rays: int = 64
@@ -71,6 +71,7 @@ class TrainConfig:
     label_replay: float = 0.5
     label_samples: int = 24
     label_trim: float = 0.01
+    final_label_trim: float = 0.002
     pair_minority: float = 0.2
     label_erode: int = 0
     label_stride: int = 0

@@ -296,6 +296,15 @@ class Trainer:
         t = (self.iteration - phase.start) / max(phase.end - phase.start - 1, 1)
         return cfg.scale_lr * (cfg.scale_lr_final + (1.0 - cfg.scale_lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
 
+    def label_trim_at(self, phase: Phase) -> float:
+        """The share of a pair's rays a valid sample may violate in this scale phase: ``label_trim``
+        in the rounds, ``final_label_trim`` in the final phase. Field phases sample from the
+        network and reshape the contacts toward whatever it accepts, so labels tight enough to
+        need exact contacts pull the fields with them (recall falls); once the fields are final
+        nothing moves, and tight labels only shrink the set toward the region."""
+        final = phase.round == self.cfg.rounds + 1
+        return self.cfg.final_label_trim if final else self.cfg.label_trim
+
     def step_scale(self, phase: Phase) -> dict[str, float]:
         """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""
         self.ensure_cache(phase)
@@ -309,7 +318,7 @@ class Trainer:
         # The pool is already restricted to rays some scale in the box explains (contested_rays).
         pv = cons.pair_violations(sbar)
         self.noise_floor = float(pv.sum(1).min()) / max(cons.count, 1)
-        labels = trimmed_labels(pv, cons.sizes(), cfg.label_trim)
+        labels = trimmed_labels(pv, cons.sizes(), self.label_trim_at(phase))
         self._remember(s[labels > 0])
         loss = F.binary_cross_entropy_with_logits(self.net(s), labels.to(self.device))
         for group in self.net_opt.param_groups:

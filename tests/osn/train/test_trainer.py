@@ -215,3 +215,20 @@ def test_scale_phase_samples_near_earlier_valid_vectors_and_resumes_them(tiny_da
     assert len(tr2.positives) == 0
     tr2.load_state_dict(tr.state_dict())
     assert torch.equal(tr2.positives, tr.positives)
+
+
+def test_final_scale_phase_labels_with_final_label_trim(tiny_dataset: Path) -> None:
+    """The rounds' scale phases trim labels by ``label_trim``, the final one by ``final_label_trim``:
+    with 0 and 1 the rounds reject samples while the final phase accepts every one (a trim of a
+    pair's every ray allows any violation), and with 0 in both the final phase rejects too."""
+    cfg = _cfg(label_trim=0.0, final_label_trim=1.0)
+    tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
+    for _ in range(150):  # opaque enough for contested rays (see the test above)
+        tr.step_stage1()
+    first, final = tr.schedule[1], tr.schedule[-1]
+    assert first.name == final.name == "scale" and first.round == 1 and final.round == cfg.rounds + 1
+    assert (tr.label_trim_at(first), tr.label_trim_at(final)) == (0.0, 1.0)
+    assert tr.step_scale(first)["valid_frac"] < 0.9
+    assert tr.step_scale(final)["valid_frac"] == 1.0
+    tr.cfg = dataclasses.replace(cfg, final_label_trim=0.0)
+    assert tr.step_scale(final)["valid_frac"] < 0.9
