@@ -61,9 +61,15 @@ def dataset_box(inputs: SceneInputs, ranges: np.ndarray, num_dataset_objects: in
     return box
 
 
-def free_normalised(inputs: SceneInputs, ranges: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """Dataset scales ``(N, num_dataset_objects)`` -> the scale network's input, the free
-    normalised scales ``(N, K-1)`` (Eq. 1 inverted in the inputs' units, anchor dropped)."""
+def normalised(inputs: SceneInputs, ranges: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Dataset scales ``(N, num_dataset_objects)`` -> normalised scales ``(N, K)`` of the inputs'
+    objects (Eq. 1 inverted in the inputs' units; 0 and 1 are the box's faces)."""
     ids = [o.id for o in inputs.objects]
     sbar = true_scales(inputs, np.asarray(scales, dtype=np.float64)[:, ids])
-    return np.delete(normalise_scales(sbar, np.asarray(ranges, dtype=np.float64)), inputs.anchor_pos, axis=1)
+    return normalise_scales(sbar, np.asarray(ranges, dtype=np.float64))
+
+
+def free_normalised(inputs: SceneInputs, ranges: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Dataset scales ``(N, num_dataset_objects)`` -> the scale network's input, the free
+    normalised scales ``(N, K-1)`` (:func:`normalised` with the anchor dropped)."""
+    return np.delete(normalised(inputs, ranges, scales), inputs.anchor_pos, axis=1)

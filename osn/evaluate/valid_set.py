@@ -11,7 +11,7 @@ from scenecore.validity import ValidRegion, set_accuracy, set_samples
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
 from osn.preprocess.inputs import normalise_scales
-from osn.evaluate.units import actual_scales, dataset_box, free_normalised, true_scales
+from osn.evaluate.units import actual_scales, dataset_box, free_normalised, normalised, true_scales
 
 
 def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_000, seed: int = 0) -> dict[str, float]:
@@ -68,8 +68,7 @@ def ground_truth_outside_box(run: TrainedRun, scales: np.ndarray) -> dict[str, f
     benchmark's scale range: such a ground truth can be approached only from the box's edge, which
     caps best-of-N there. Reported so that cap is visible, not hidden in the averages.
     """
-    ids = [o.id for o in run.inputs.objects]
-    s = normalise_scales(true_scales(run.inputs, scales[:, ids]), run.ranges)
-    free = [k for k in range(len(ids)) if k != run.anchor_pos]
+    s = normalised(run.inputs, run.ranges, scales)
+    free = [k for k in range(run.inputs.num_objects) if k != run.anchor_pos]
     dist = np.maximum(np.maximum(-s[:, free], s[:, free] - 1.0), 0.0).max(axis=1) if free else np.zeros(len(s))
     return {"gt_outside_scale_box": int(np.sum(dist > 0)), "gt_outside_scale_box_max": float(dist.max(initial=0.0))}

@@ -308,7 +308,7 @@ class Trainer:
     def step_scale(self, phase: Phase) -> dict[str, float]:
         """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""
         self.ensure_cache(phase)
-        cfg, st = self.cfg, self.st
+        st = self.st
         s = self._scale_samples()
         sbar = full_sbar(s, st.ranges, st.anchor)
         cons = self._constraints()
