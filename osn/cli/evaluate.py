@@ -28,7 +28,8 @@ def _cmd_sample(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    cfg = EvalConfig(max_views=args.max_views, levels=args.levels, topk=args.topk, lpips=not args.no_lpips, seed=args.seed)
+    cfg = EvalConfig(max_views=args.max_views, levels=args.levels, topk=args.topk, lpips=not args.no_lpips, seed=args.seed,
+                     true_scales=not args.no_true_scales)
     run = load_run(args.run)
     samples_path = Path(args.samples) if args.samples else Path(args.run) / "samples.npz"
     samples = Samples.load(samples_path)
@@ -68,7 +69,10 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--levels", type=int, default=24, help="quantised scales per object in the layered search")
     p.add_argument("--topk", type=int, default=2, help="candidates per ground truth rendered exactly before matching")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
+    p.add_argument("--no-true-scales", action="store_true",
+                   help="skip the 'true scales' reference row: the run's fields rendered at every ground truth's exact "
+                   "scales (what best of N approaches with these fields; costs G more rendered candidates)")
     p.add_argument("--seed", type=int, default=0, help="seed of Monte-Carlo valid-set points (more than 3 objects)")
     p.add_argument("--candidates", metavar="DIR",
                    help="also write the rendered candidates as prediction directories for `benchgen score` "
-                   "(DIR/preselected, DIR/highest-score, DIR/centre-of-ranges; docs/predictions.md)")
+                   "(DIR/preselected, DIR/highest-score, DIR/centre-of-ranges, DIR/true-scales; docs/predictions.md)")

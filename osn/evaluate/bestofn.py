@@ -14,6 +14,11 @@ the layered search (:mod:`osn.evaluate.layered`) estimates all N x G PSNRs and t
 samples of every ground truth (plus the highest-scoring one) become the candidates. The match is
 the best *rendered* candidate; ``benchmarks/bench_bestofn.py`` measures how far that is from
 scoring all N exactly.
+
+With ``EvalConfig.true_scales`` the same fields are also rendered at every ground truth's exact
+scales and scored as G candidates (the "true scales" row): what best of N would reach if the
+samples held every exact configuration. It separates the error the scale search leaves (best of
+N below that row) from the error of the fields themselves (that row below the ground truth).
 """
 
 from __future__ import annotations
@@ -31,11 +36,15 @@ from benchgen.score.scorer import ScoreResult, score
 from benchgen.score.truth import Truth, load_truth
 from osn.evaluate.exact import RenderedCandidates
 from osn.evaluate.layered import layered_psnr
-from osn.evaluate.units import actual_scales, ground_truth_problem
+from osn.evaluate.units import actual_scales, ground_truth_problem, true_scales
 from osn.evaluate.valid_set import ground_truth_outside_box, valid_set_accuracy, widest_object_profile
 from osn.model.run import TrainedRun
 from osn.preprocess.inputs import InputsError
 from osn.sample.configurations import Samples
+
+
+#: The table row of the fields rendered at the ground truths' own scales (a reference).
+TRUE_SCALES = "true scales"
 
 
 @dataclass
@@ -51,6 +60,8 @@ class EvalConfig:
         valid_points: Monte-Carlo points of the valid-set accuracy, as many again in the exact
             region's interval box (stratified; :func:`osn.evaluate.valid_set.valid_set_accuracy`).
         seed: seed of Monte-Carlo points.
+        true_scales: also score the fields at every ground truth's exact scales (what best of N
+            approaches with these fields; G more candidates rendered).
     """
 
     max_views: int = 30
@@ -59,6 +70,7 @@ class EvalConfig:
     lpips: bool = True
     valid_points: int = 200_000
     seed: int = 0
+    true_scales: bool = True
 
     def __post_init__(self) -> None:
         validate(self, "evaluate", {
@@ -68,6 +80,7 @@ class EvalConfig:
             "lpips": flag(),
             "valid_points": integer(1000),
             "seed": integer(0),
+            "true_scales": flag(),
         })
 
 
@@ -161,6 +174,15 @@ def evaluate(
         rendered[name] = RenderedCandidates(run, truth, {name.replace(" ", "-"): sbar})
         table[name] = _table_row(score(truth, rendered[name], cfg.lpips))
     timings["baselines_s"] = time.perf_counter() - t0
+    true_extra: dict[str, Any] = {}
+    if cfg.true_scales:
+        t0 = time.perf_counter()
+        rendered[TRUE_SCALES], res_true = true_scales_candidates(run, truth, cfg.lpips)
+        table[TRUE_SCALES] = _table_row(res_true)
+        own = [r["match_index"] == g for g, r in enumerate(res_true.per_ground_truth)]
+        true_extra = {"true_scales_psnr": [r["psnr"] for r in res_true.per_ground_truth],
+                      "true_scales_own_match": float(np.mean(own))}
+        timings["true_scales_s"] = time.perf_counter() - t0
     if candidates_dir is not None:
         write_candidates(rendered, Path(candidates_dir), len(samples.sbar))
     per_gt = [{**{k: v for k, v in r.items() if k not in ("match", "match_index", "configuration")},
@@ -185,8 +207,20 @@ def evaluate(
         "sample_fallbacks": samples.fell_back,
         **ground_truth_outside_box(run, truth.scales),
         **unposed_object_pixels(run, truth),
+        **true_extra,
     }
     return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra)
+
+
+def true_scales_candidates(run: TrainedRun, truth: Truth, with_lpips: bool) -> tuple[RenderedCandidates, ScoreResult]:
+    """The run's fields rendered at each of the G ground truths' exact scales, scored as G
+    candidates against every ground truth (best of G): what best of N reaches when the samples
+    hold every exact configuration. Reads the ground truth, so it is a reference, not a method.
+    Each ground truth is usually matched to its own scales (``extra["true_scales_own_match"]``)."""
+    ids = [o.id for o in run.inputs.objects]
+    sbar = true_scales(run.inputs, truth.scales[:, ids])
+    source = RenderedCandidates(run, truth, {f"true_scales_{g:03d}": sbar[g] for g in range(len(sbar))})
+    return source, score(truth, source, with_lpips)
 
 
 def unposed_object_pixels(run: TrainedRun, truth: Truth) -> dict[str, Any]:
@@ -213,6 +247,11 @@ def unposed_object_pixels(run: TrainedRun, truth: Truth) -> dict[str, Any]:
     }
 
 
+#: Prediction directory of each rendered candidate set under ``--candidates DIR``.
+CANDIDATE_DIRS = {"preselected": "preselected", "highest score": "highest-score",
+                  "centre of learned ranges": "centre-of-ranges", TRUE_SCALES: "true-scales"}
+
+
 def write_candidates(rendered: dict[str, RenderedCandidates], out: Path, n: int) -> None:
     """The rendered candidates as prediction directories under ``out`` (docs/predictions.md)."""
     notes = {
@@ -220,10 +259,10 @@ def write_candidates(rendered: dict[str, RenderedCandidates], out: Path, n: int)
                        "and the highest-scoring sample), rendered exactly",
         "highest score": f"OSN: the highest-scoring of {n} samples (one solution)",
         "centre of learned ranges": f"OSN: the centre of the learned scale ranges of {n} samples (one solution)",
+        TRUE_SCALES: "OSN's fields rendered at every ground truth's exact scales (reads the ground truth: a reference, not a method)",
     }
     for key, source in rendered.items():
-        source.write(out / key.replace(" of learned ranges", "-of-ranges").replace(" ", "-"),
-                     {"name": f"OSN {key}", "notes": notes[key]})
+        source.write(out / CANDIDATE_DIRS[key], {"name": f"OSN {key}", "notes": notes[key]})
 
 
 def evaluation_curves(
