@@ -177,6 +177,8 @@ def evaluate(
     true_extra: dict[str, Any] = {}
     if cfg.true_scales:
         t0 = time.perf_counter()
+        if candidates_dir is None:
+            rendered.clear()  # renders are kept only to be written: free them before G more
         rendered[TRUE_SCALES], res_true = true_scales_candidates(run, truth, cfg.lpips)
         table[TRUE_SCALES] = _table_row(res_true)
         own = [r["match_index"] == g for g, r in enumerate(res_true.per_ground_truth)]
