@@ -673,6 +673,31 @@ def test_rendered_depth_is_infinite_where_nothing_is_hit(trained: Path) -> None:
     assert whole == pytest.approx(hit, abs=1e-12) and whole < 1e-6
 
 
+def test_candidates_rendered_view_by_view_equal_single_renders(trained: Path, tiny_dataset: Path) -> None:
+    """Evaluation renders candidates view by view and shades the anchor once per view for all of
+    them: every candidate's colour, depth and ids equal its own ``render_view`` in every view."""
+    from benchgen.score.truth import load_truth
+    from osn.evaluate.exact import render_candidates
+    from osn.model.run import load_run
+
+    run = load_run(trained)
+    truth = load_truth(tiny_dataset, 0)
+    free = run.inputs.num_objects - 1
+    sbars = list(run.sbar(np.array([[0.0] * free, [0.5] * free, [1.0] * free])))  # the anchor at 1 in all
+    assert all(s[run.anchor_pos] == 1.0 for s in sbars)
+    for c, cand in zip(sbars, render_candidates(run, truth.frames, sbars)):
+        single = [run.render_view(f.camera_to_world, f.time_index, c) for f in truth.frames]
+        assert np.allclose(cand.rgb, np.clip(np.stack([v["rgb"] for v in single]), 0, 1), atol=1e-6)
+        assert np.array_equal(cand.ids, np.stack([v["ids"] for v in single]))
+        ref = np.stack([v["depth"] for v in single])
+        assert np.array_equal(np.isinf(cand.depth), np.isinf(ref)) and np.allclose(cand.depth[np.isfinite(ref)], ref[np.isfinite(ref)], atol=1e-5)
+    anchor = run.shade_anchor(truth.frames[0].camera_to_world, truth.frames[0].time_index)
+    off = sbars[1].copy()
+    off[run.anchor_pos] = 2.0
+    with pytest.raises(ValueError, match="scale 1"):
+        run.render_view(truth.frames[0].camera_to_world, truth.frames[0].time_index, off, anchor=anchor)
+
+
 def test_ground_truths_outside_the_sampled_box_are_counted(trained: Path, tiny_dataset: Path) -> None:
     """Eq. 1's box does not know the benchmark's scale range: the tiny preset's configurations 1
     and 2 put the ball 0.9% of its range below the box. Evaluation counts them (they can only be

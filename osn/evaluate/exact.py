@@ -20,24 +20,36 @@ from benchgen.score.truth import Truth
 from osn.model.run import TrainedRun
 
 
-def render_candidate(run: TrainedRun, frames: Sequence[D.Frame], sbar: np.ndarray) -> Candidate:
-    """Composite volume renders of configuration ``sbar (K,)`` on ``frames``.
+def render_candidates(
+    run: TrainedRun, frames: Sequence[D.Frame], sbars: Sequence[np.ndarray], progress: bool = False
+) -> list[Candidate]:
+    """Composite volume renders of configurations ``sbars`` (each ``(K,)``) on ``frames``.
 
-    Returns ``rgb (V, H, W, 3)`` float32 in [0, 1], ``depth (V, H, W)`` planar (``+inf`` where
-    nothing is hit), ``ids (V, H, W)`` uint8, as a :class:`~benchgen.score.predictions.Candidate`.
+    View by view, so the anchor (at scale 1 in every configuration) is shaded once per view and
+    reused by every configuration: the renders are those of :meth:`TrainedRun.render_view`.
+    Returns per configuration ``rgb (V, H, W, 3)`` float32 in [0, 1], ``depth (V, H, W)`` planar
+    (``+inf`` where nothing is hit), ``ids (V, H, W)`` uint8, as a
+    :class:`~benchgen.score.predictions.Candidate`.
     """
-    views = [run.render_view(f.camera_to_world, f.time_index, sbar) for f in frames]
-    rgb = np.clip(np.stack([v["rgb"] for v in views]), 0.0, 1.0).astype(np.float32)
-    depth = np.stack([v["depth"] for v in views]).astype(np.float32)
-    return Candidate(rgb=rgb, depth=depth, ids=np.stack([v["ids"] for v in views]).astype(np.uint8))
+    from tqdm import tqdm
+
+    views: list[list[dict]] = [[] for _ in sbars]
+    for f in tqdm(frames, desc=f"rendering {len(sbars)} candidates", disable=not progress or not sbars, dynamic_ncols=True):
+        anchor = run.shade_anchor(f.camera_to_world, f.time_index)
+        for c, sbar in enumerate(sbars):
+            views[c].append(run.render_view(f.camera_to_world, f.time_index, sbar, anchor=anchor))
+    return [Candidate(rgb=np.clip(np.stack([v["rgb"] for v in vs]), 0.0, 1.0).astype(np.float32),
+                      depth=np.stack([v["depth"] for v in vs]).astype(np.float32),
+                      ids=np.stack([v["ids"] for v in vs]).astype(np.uint8)) for vs in views]
 
 
 class RenderedCandidates:
     """Named configurations (``name -> sbar (K,)``) rendered on the evaluated views on demand.
 
-    A render is kept once made: the scorer loads a matched candidate twice (the PSNR pass, then
-    its full metrics), and :meth:`write` saves every render without rendering again. Memory is
-    that of the rendered candidates (the pre-selection keeps their number small).
+    The first :meth:`load` renders every candidate (view by view, sharing the anchor's samples;
+    the scorer loads them all) and keeps them: the scorer loads a matched candidate twice (the
+    PSNR pass, then its full metrics), and :meth:`write` saves every render without rendering
+    again. Memory is that of the rendered candidates (the pre-selection keeps their number small).
     """
 
     has_depth = True
@@ -53,10 +65,11 @@ class RenderedCandidates:
         return len(self.names)
 
     def load(self, index: int) -> Candidate:
-        if index not in self.rendered:
-            c = render_candidate(self.run, self.truth.frames, self.sbar[index])
-            check_candidate(c, self.names[index], self.truth.scene, self.truth.num_views, True, True)
-            self.rendered[index] = c
+        if index not in self.rendered:  # the scorer loads every candidate: render all not yet rendered at once
+            todo = [i for i in range(len(self)) if i not in self.rendered]
+            for i, c in zip(todo, render_candidates(self.run, self.truth.frames, [self.sbar[i] for i in todo], progress=True)):
+                check_candidate(c, self.names[i], self.truth.scene, self.truth.num_views, True, True)
+                self.rendered[i] = c
         return self.rendered[index]
 
     def write(self, out: str | Path, method: dict) -> Path:

@@ -21,7 +21,7 @@ from osn.model.fields import Field, FieldConfig, make_field
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
-from osn.model.volume import ObjectRays, RenderOutput, render
+from osn.model.volume import ObjectRays, RenderOutput, ShadedSamples, render, shade
 
 #: Version of ``checkpoint.pt`` that ``osn train`` writes (2 added the scale phase's replay
 #: buffer). The first checkpoints carried no version key and are version 1; both hold the same
@@ -83,6 +83,35 @@ class TrainedRun:
             out.append(check_scores(self.net.prob(x), str(self.path / "checkpoint.pt")).double().cpu().numpy())
         return np.concatenate(out) if out else np.zeros(0)
 
+    def _view_rays(self, camera_to_world: np.ndarray | None, time_index: int, sbar: np.ndarray, objects: list[int] | None
+                   ) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
+        """Camera-frame ray directions ``(H*W, 3)`` of a view and each posed object's similarity."""
+        inp = self.inputs
+        M = np.eye(4) if camera_to_world is None else novel_to_training_camera(inp, camera_to_world, time_index)
+        T = object_transforms(inp, M, time_index, np.asarray(sbar, dtype=np.float64))
+        keep = [k for k in (objects if objects is not None else range(inp.num_objects)) if k in T]
+        _, d = pixel_rays(inp.K, np.eye(4), inp.width, inp.height)
+        return torch.from_numpy(d).float().to(self.device), {k: torch.from_numpy(T[k]).float().to(self.device) for k in keep}
+
+    def _object_rays(self, k: int, pose: torch.Tensor, R: int) -> ObjectRays:
+        wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
+        return ObjectRays(self.fields[k], pose.expand(R, 4, 4), torch.ones(R, dtype=torch.bool, device=self.device), wide)
+
+    @torch.no_grad()
+    def shade_anchor(self, camera_to_world: np.ndarray | None, time_index: int, chunk: int = 8192,
+                     n_samples: int | None = None) -> list[ShadedSamples]:
+        """The anchor's evaluated samples in one view, per ray chunk, for :meth:`render_view`'s
+        ``anchor``: its pose does not depend on the configuration (scale 1), so every candidate
+        rendered in this view can reuse them. Empty when the anchor is unposed at ``time_index``."""
+        sbar = np.ones(self.inputs.num_objects)
+        dirs, pose = self._view_rays(camera_to_world, time_index, sbar, [self.anchor_pos])
+        if self.anchor_pos not in pose:
+            return []
+        S = n_samples or int(self.config.get("samples", 32))
+        skip = float(self.config.get("skip_occluded", 0.0))
+        return [shade(self._object_rays(self.anchor_pos, pose[self.anchor_pos], len(dc)), dc, S, skip)
+                for dc in torch.split(dirs, chunk)]
+
     @torch.no_grad()
     def render_view(
         self,
@@ -92,41 +121,38 @@ class TrainedRun:
         objects: list[int] | None = None,
         chunk: int = 8192,
         n_samples: int | None = None,
+        anchor: list[ShadedSamples] | None = None,
     ) -> dict[str, np.ndarray]:
         """Render ``(H, W)`` images of configuration ``sbar (K,)`` at timestamp ``time_index``.
 
         ``camera_to_world`` is a dataset-world OpenCV camera (test view) or None for the training
         camera of that timestamp. ``objects`` restricts rendering to some object positions (a
-        layer). Returns ``rgb (H,W,3)``, ``depth (H,W)`` (planar, scene units; ``+inf`` where
+        layer). ``anchor``: :meth:`shade_anchor` of the same view, chunk and sample count, used
+        instead of querying the anchor's field again (the render is the same). Returns
+        ``rgb (H,W,3)``, ``depth (H,W)`` (planar, scene units; ``+inf`` where
         ``acc <= EMPTY_ACC``, as in the dataset format, so depth metrics skip holes instead of
         reading them as surfaces at the camera), ``acc (H,W)`` and ``ids (H,W)`` (object id of the
         largest weight share, 255 where empty).
         """
         inp = self.inputs
         H, W = inp.height, inp.width
-        M = np.eye(4) if camera_to_world is None else novel_to_training_camera(inp, camera_to_world, time_index)
-        T = object_transforms(inp, M, time_index, np.asarray(sbar, dtype=np.float64))
-        keep = [k for k in (objects if objects is not None else range(inp.num_objects)) if k in T]
-        _, d = pixel_rays(inp.K, np.eye(4), W, H)
-        dirs = torch.from_numpy(d).float().to(self.device)
+        dirs, pose = self._view_rays(camera_to_world, time_index, sbar, objects)
+        keep = list(pose)
+        if anchor is not None and self.anchor_pos in pose and float(sbar[self.anchor_pos]) != 1.0:
+            raise ValueError(f"cached anchor samples are at scale 1, the configuration has {sbar[self.anchor_pos]}")
         cfg = self.config
         S = n_samples or int(cfg.get("samples", 32))
         bg = torch.tensor(cfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32, device=self.device)
-        wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
         rgb = torch.zeros(H * W, 3, device=self.device) + bg
         depth = torch.full((H * W,), float("inf"), device=self.device)
         acc = torch.zeros(H * W, device=self.device)
         ids = torch.full((H * W,), 255, dtype=torch.long, device=self.device)
         if keep:
-            pose = {k: torch.from_numpy(T[k]).float().to(self.device) for k in keep}
             obj_ids = torch.tensor([inp.objects[k].id for k in keep], device=self.device)
-            for i in range(0, H * W, chunk):
+            for c, i in enumerate(range(0, H * W, chunk)):
                 dc = dirs[i : i + chunk]
                 R = len(dc)
-                rays = [
-                    ObjectRays(self.fields[k], pose[k].expand(R, 4, 4), torch.ones(R, dtype=torch.bool, device=self.device), wide)
-                    for k in keep
-                ]
+                rays = [anchor[c] if anchor and k == self.anchor_pos else self._object_rays(k, pose[k], R) for k in keep]
                 out: RenderOutput = render(rays, dc, S, None, bg, float(cfg.get("skip_occluded", 0.0)))
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc

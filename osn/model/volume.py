@@ -147,8 +147,47 @@ def _object_samples(
     return t, delta_len, pts, view, ok
 
 
+@dataclass
+class ShadedSamples:
+    """One object's samples on a ray batch, evaluated once (no gradients) and reused by
+    :func:`render` in place of its :class:`ObjectRays`: an object whose pose and scale are the
+    same in many renders of one view (the anchor in every candidate configuration) is queried once.
+
+    Attributes:
+        t: ``(R, S)`` planar depth of each sample; ``+inf`` where the ray misses the object.
+        tau: ``(R, S)`` optical thickness.
+        col: ``(R, S, 3)`` colour where the object alone leaves transmittance above
+            ``skip_occluded`` (0 elsewhere: no composite render can see those samples).
+        skip_occluded: the threshold it was shaded with; :func:`render` needs one at least as large.
+    """
+
+    t: torch.Tensor
+    tau: torch.Tensor
+    col: torch.Tensor
+    skip_occluded: float
+
+
+@torch.no_grad()
+def shade(obj: ObjectRays, dirs_cam: torch.Tensor, n_samples: int, skip_occluded: float = 0.0) -> ShadedSamples:
+    """Evaluate one object's deterministic (midpoint) samples on ``dirs_cam (R, 3)`` for reuse."""
+    t, delta, pts, view, ok = _object_samples(obj, dirs_cam, n_samples, None)
+    R, S = t.shape
+    m = ok[:, None].expand(R, S)
+    sig = torch.zeros(R, S, device=t.device)
+    if m.any():
+        sig[m] = obj.field.density(pts[m])
+    tau = sig * delta
+    if skip_occluded > 0:  # colour only where the object alone does not hide the sample
+        excl = torch.cumsum(tau.clamp(0.0, MAX_OPTICAL), 1) - tau.clamp(0.0, MAX_OPTICAL)
+        m = m & (torch.exp(-excl) > skip_occluded)
+    col = torch.zeros(R, S, 3, device=t.device)
+    if m.any():
+        col[m] = obj.field.color(pts[m], view[:, None, :].expand(R, S, 3)[m])
+    return ShadedSamples(torch.where(ok[:, None], t, torch.full_like(t, float("inf"))), tau, col, skip_occluded)
+
+
 def render(
-    objects: Sequence[ObjectRays],
+    objects: Sequence[ObjectRays | ShadedSamples],
     dirs_cam: torch.Tensor,
     n_samples: int,
     generator: torch.Generator | None = None,
@@ -163,7 +202,8 @@ def render(
     ``(R, ...)`` results (:class:`RenderOutput`) with ``K = len(objects)``.
 
     Args:
-        objects: per object its field, camera-to-object similarity, presence and depth range.
+        objects: per object its field, camera-to-object similarity, presence and depth range,
+            or its :func:`shade`-d samples (same ``n_samples``, deterministic rendering only).
         dirs_cam: ``(R, 3)`` camera-frame directions with unit z.
         n_samples: stratified samples per object inside its box interval.
         generator: jitter source (None = interval midpoints, deterministic evaluation).
@@ -178,15 +218,25 @@ def render(
     if K == 0:  # nothing to composite (e.g. every object absent from a frame): the background
         zero = torch.zeros(R, device=dev)
         return RenderOutput(rgb=bg.expand(R, 3).clone(), depth=zero, acc=zero.clone(), log_seg=torch.zeros(R, 0, device=dev))
-    samples = [_object_samples(obj, dirs_cam, S, generator) for obj in objects]
-    t_all = torch.cat([torch.where(s[4][:, None], s[0], torch.full_like(s[0], float("inf"))) for s in samples], 1)
+    for obj in objects:
+        if isinstance(obj, ShadedSamples) and (generator is not None or obj.t.shape != (R, S) or obj.skip_occluded > skip_occluded):
+            raise ValueError("shaded samples need deterministic rendering with their ray batch, sample count and "
+                             f"a skip_occluded >= theirs ({obj.skip_occluded}), got {skip_occluded}")
+    # Cached objects (ShadedSamples) bring their samples, optical thickness and colour along.
+    samples = [None if isinstance(obj, ShadedSamples) else _object_samples(obj, dirs_cam, S, generator) for obj in objects]
+    t_obj = [obj.t if s is None else torch.where(s[4][:, None], s[0], torch.full_like(s[0], float("inf")))
+             for obj, s in zip(objects, samples)]
+    t_all = torch.cat(t_obj, 1)
     order = torch.argsort(t_all, dim=1)
 
-    keep = [s[4][:, None].expand(R, S) for s in samples]
+    keep = [torch.isfinite(t) for t in t_obj]
     if skip_occluded > 0:
         with torch.no_grad():
             tau = torch.zeros(R, K * S, device=dev)
             for k, (obj, s) in enumerate(zip(objects, samples)):
+                if s is None:
+                    tau[:, k * S : (k + 1) * S] = obj.tau
+                    continue
                 m = keep[k]
                 sig = torch.zeros(R, S, device=dev)
                 if m.any():
@@ -202,6 +252,10 @@ def render(
     taus, cols = [], []
     for k, (obj, s) in enumerate(zip(objects, samples)):
         m = keep[k]
+        if s is None:  # a sample kept here is visible with the object alone: its colour is cached
+            taus.append(torch.where(m, obj.tau, torch.zeros_like(obj.tau)))
+            cols.append(torch.where(m[..., None], obj.col, torch.zeros_like(obj.col)))
+            continue
         sig = torch.zeros(R, S, device=dev)
         col = torch.zeros(R, S, 3, device=dev)
         if m.any():
@@ -215,14 +269,15 @@ def render(
     col = torch.gather(torch.cat(cols, 1), 1, order[..., None].expand(R, K * S, 3))
     t_sorted = torch.gather(t_all, 1, order)
     t_sorted = torch.where(torch.isfinite(t_sorted), t_sorted, torch.zeros_like(t_sorted))
-    obj_id = torch.gather(torch.arange(K, device=dev).repeat_interleave(S).expand(R, K * S), 1, order)
 
     w, log_w = transmittance_weights(tau)
     acc = w.sum(1)
     rgb = (w[..., None] * col).sum(1) + (1.0 - acc)[:, None] * bg
     depth = (w * t_sorted).sum(1)
-    # A finite fill (not -inf): logsumexp's gradient is NaN when all its inputs are -inf.
-    log_share = torch.stack([torch.where(obj_id == k, log_w, torch.full_like(log_w, -1e30)).logsumexp(1) for k in range(K)], 1)
+    # Back to per-object order, so each object's share is a logsumexp over its own S samples
+    # (K x S values per ray in all, not K x (K x S) with the others masked out).
+    log_w_obj = torch.empty_like(log_w).scatter(1, order, log_w).view(R, K, S)
+    log_share = log_w_obj.logsumexp(2)
     # eps floor: rays that hit nothing get a uniform, finite segmentation instead of NaN.
     log_share = torch.logaddexp(log_share, torch.full_like(log_share, torch.log(torch.tensor(SEG_EPS)).item()))
     log_seg = log_share - log_share.logsumexp(1, keepdim=True)

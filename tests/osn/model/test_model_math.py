@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import minority_pairs, order_constraints, trimmed_labels
-from osn.model.volume import ObjectRays, ray_box, render, transmittance_weights
+from osn.model.volume import ObjectRays, ray_box, render, shade, transmittance_weights
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -141,6 +141,35 @@ def test_skip_occluded_matches_full_render() -> None:
     full = render(objs, _rays(n), 32)
     fast = render(objs, _rays(n), 32, skip_occluded=1e-4)
     assert torch.allclose(full.rgb, fast.rgb, atol=1e-3) and torch.allclose(full.depth, fast.depth, atol=1e-2)
+
+
+@pytest.mark.parametrize("skip", [0.0, 1e-3])
+def test_shaded_samples_render_like_the_object_they_cache(skip: float) -> None:
+    """Evaluation shades the anchor once per view and reuses it for every candidate: the
+    composite must equal querying its field again, whether the cached object is behind the
+    others, in front of them or semi-transparent, with and without skipping occluded samples."""
+    n, S = 48, 16
+    g = torch.Generator().manual_seed(3)
+    fields = []
+    for _ in range(3):  # uneven density and colour: rays stop at different depths, none at once
+        f = DenseGridField(BOX, 6)
+        with torch.no_grad():
+            f.grid.copy_(torch.randn(f.grid.shape, generator=g) * 2.0)
+            f.grid[:, 0] = f.grid[:, 0] * 2.0 + 3.0
+        fields.append(f)
+    dirs = _rays(n, seed=1)
+    for z_cached in (2.0, 5.0, 9.0):  # in front of, between and behind the other two
+        objs = [_obj(fields[0], z_cached, n), _obj(fields[1], 4.0, n, 0.7), _obj(fields[2], 6.0, n, 1.3)]
+        ref = render(objs, dirs, S, skip_occluded=skip)
+        cached = render([shade(objs[0], dirs, S, skip), *objs[1:]], dirs, S, skip_occluded=skip)
+        for a, b in ((ref.rgb, cached.rgb), (ref.depth, cached.depth), (ref.acc, cached.acc), (ref.log_seg, cached.log_seg)):
+            assert torch.allclose(a, b, atol=1e-6)
+        acc = ref.acc.detach()  # dense enough that samples are skipped, not opaque at the first sample
+        assert 0.9 < float(acc.min()) and float(acc.max()) < 0.9999
+    with pytest.raises(ValueError, match="shaded samples"):
+        render([shade(objs[0], dirs, S, 1e-2), *objs[1:]], dirs, S, skip_occluded=1e-3)  # colour missing where needed
+    with pytest.raises(ValueError, match="shaded samples"):
+        render([shade(objs[0], dirs, S), *objs[1:]], dirs, S + 1)
 
 
 @SETTINGS
