@@ -50,7 +50,7 @@ class TrainConfig:
     rays_per_object: int = 384
     rays: int = 1024
     depth_rays: int = 64
-    samples: int = 24
+    samples: int = 48
     skip_occluded: float = 1e-3
     w_rgb: float = 1.0
     w_depth: float = 1.0
