@@ -178,8 +178,11 @@ def shade(obj: ObjectRays, dirs_cam: torch.Tensor, n_samples: int, skip_occluded
         sig[m] = obj.field.density(pts[m])
     tau = sig * delta
     if skip_occluded > 0:  # colour only where the object alone does not hide the sample
-        excl = torch.cumsum(tau.clamp(0.0, MAX_OPTICAL), 1) - tau.clamp(0.0, MAX_OPTICAL)
-        m = m & (torch.exp(-excl) > skip_occluded)
+        csum = torch.cumsum(tau.clamp(0.0, MAX_OPTICAL), 1)
+        excl = torch.cat([torch.zeros_like(csum[:, :1]), csum[:, :-1]], 1)
+        # Half the threshold: a composite's transmittance, summed in another order, may round
+        # above the object's own at the threshold; a few more colours cost nothing.
+        m = m & (torch.exp(-excl) > 0.5 * skip_occluded)
     col = torch.zeros(R, S, 3, device=t.device)
     if m.any():
         col[m] = obj.field.color(pts[m], view[:, None, :].expand(R, S, 3)[m])
