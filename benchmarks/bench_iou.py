@@ -111,7 +111,7 @@ def main() -> None:
     ap.add_argument("--inputs", default=None, help="per-object inputs (osn preprocess) of a single dataset; default: oracle")
     ap.add_argument("--quiet", action="store_true", help="only the summary table")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides for every variant")
-    args = ap.parse_args()
+    args = ap.parse_intermixed_args()  # key=value may also follow the options
     overrides = [d for d in args.datasets if "=" in d] + args.overrides  # argparse puts key=value with the datasets
     datasets = [d for d in args.datasets if "=" not in d]
     if args.inputs and len(datasets) > 1:
