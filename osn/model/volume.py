@@ -167,26 +167,91 @@ class ShadedSamples:
     skip_occluded: float
 
 
+def _optical_thickness(obj: ObjectRays, samples: tuple, keep: torch.Tensor) -> torch.Tensor:
+    """Optical thickness ``(R, S)`` of one object's samples (0 where ``keep (R, S)`` is False)."""
+    sig = torch.zeros(keep.shape, device=keep.device)
+    if keep.any():
+        sig[keep] = obj.field.density(samples[2][keep])
+    return sig * samples[1]
+
+
+def _exclusive_transmittance(tau: torch.Tensor) -> torch.Tensor:
+    """Transmittance ``(R, S)`` in front of each of ``tau (R, S)``'s ordered samples."""
+    csum = torch.cumsum(tau.clamp(0.0, MAX_OPTICAL), 1)
+    return torch.exp(-torch.cat([torch.zeros_like(csum[:, :1]), csum[:, :-1]], 1))
+
+
 @torch.no_grad()
 def shade(obj: ObjectRays, dirs_cam: torch.Tensor, n_samples: int, skip_occluded: float = 0.0) -> ShadedSamples:
     """Evaluate one object's deterministic (midpoint) samples on ``dirs_cam (R, 3)`` for reuse."""
-    t, delta, pts, view, ok = _object_samples(obj, dirs_cam, n_samples, None)
+    smp = _object_samples(obj, dirs_cam, n_samples, None)
+    t, ok = smp[0], smp[4]
     R, S = t.shape
     m = ok[:, None].expand(R, S)
-    sig = torch.zeros(R, S, device=t.device)
-    if m.any():
-        sig[m] = obj.field.density(pts[m])
-    tau = sig * delta
+    tau = _optical_thickness(obj, smp, m)
     if skip_occluded > 0:  # colour only where the object alone does not hide the sample
-        csum = torch.cumsum(tau.clamp(0.0, MAX_OPTICAL), 1)
-        excl = torch.cat([torch.zeros_like(csum[:, :1]), csum[:, :-1]], 1)
         # Half the threshold: a composite's transmittance, summed in another order, may round
         # above the object's own at the threshold; a few more colours cost nothing.
-        m = m & (torch.exp(-excl) > 0.5 * skip_occluded)
+        m = m & (_exclusive_transmittance(tau) > 0.5 * skip_occluded)
     col = torch.zeros(R, S, 3, device=t.device)
     if m.any():
-        col[m] = obj.field.color(pts[m], view[:, None, :].expand(R, S, 3)[m])
+        col[m] = obj.field.color(smp[2][m], smp[3][:, None, :].expand(R, S, 3)[m])
     return ShadedSamples(torch.where(ok[:, None], t, torch.full_like(t, float("inf"))), tau, col, skip_occluded)
+
+
+def _visible(objects: Sequence, samples: list, keep: list[torch.Tensor], order: torch.Tensor, skip_occluded: float
+             ) -> list[torch.Tensor]:
+    """``keep`` narrowed to samples whose composite transmittance exceeds ``skip_occluded``
+    (a gradient-free density pass over all objects, in depth order ``order (R, K*S)``)."""
+    with torch.no_grad():
+        tau = torch.cat([obj.tau if smp is None else _optical_thickness(obj, smp, m)
+                         for obj, smp, m in zip(objects, samples, keep)], 1)
+        visible_sorted = _exclusive_transmittance(torch.gather(tau, 1, order)) > skip_occluded
+        visible = torch.empty_like(visible_sorted).scatter_(1, order, visible_sorted)
+    S = keep[0].shape[1]
+    return [m & visible[:, k * S : (k + 1) * S] for k, m in enumerate(keep)]
+
+
+def _shade_kept(obj: ObjectRays | ShadedSamples, samples: tuple | None, keep: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Optical thickness ``(R, S)`` and colour ``(R, S, 3)`` of one object's kept samples (with
+    gradients; 0 elsewhere). A kept sample of shaded samples is visible with the object alone,
+    so its colour is cached."""
+    if samples is None:
+        return torch.where(keep, obj.tau, torch.zeros_like(obj.tau)), torch.where(keep[..., None], obj.col, torch.zeros_like(obj.col))
+    R, S = keep.shape
+    sig = torch.zeros(R, S, device=keep.device)
+    col = torch.zeros(R, S, 3, device=keep.device)
+    if keep.any():
+        view = samples[3][:, None, :].expand(R, S, 3)[keep]
+        sg, cl = obj.field.density_and_color(samples[2][keep], view)
+        sig = sig.masked_scatter(keep, sg)
+        col = col.masked_scatter(keep[..., None].expand(R, S, 3), cl)
+    return sig * samples[1], col
+
+
+def _composite(taus: list[torch.Tensor], cols: list[torch.Tensor], t_all: torch.Tensor, order: torch.Tensor,
+               bg: torch.Tensor) -> RenderOutput:
+    """Merge K objects' samples (per object ``(R, S)`` optical thickness and ``(R, S, 3)`` colour,
+    planar depths ``t_all (R, K*S)``) in depth order ``order`` into one :class:`RenderOutput`."""
+    R, K, S = order.shape[0], len(taus), taus[0].shape[1]
+    tau = torch.gather(torch.cat(taus, 1), 1, order)
+    col = torch.gather(torch.cat(cols, 1), 1, order[..., None].expand(R, K * S, 3))
+    t_sorted = torch.gather(t_all, 1, order)
+    t_sorted = torch.where(torch.isfinite(t_sorted), t_sorted, torch.zeros_like(t_sorted))
+
+    w, log_w = transmittance_weights(tau)
+    acc = w.sum(1)
+    rgb = (w[..., None] * col).sum(1) + (1.0 - acc)[:, None] * bg
+    depth = (w * t_sorted).sum(1)
+    # Back to per-object order, so each object's share is a logsumexp over its own S samples
+    # (K x S values per ray in all, not K x (K x S) with the others masked out).
+    log_w_obj = torch.empty_like(log_w).scatter(1, order, log_w).view(R, K, S)
+    log_share = log_w_obj.logsumexp(2)
+    # eps floor: rays that hit nothing get a uniform, finite segmentation instead of NaN.
+    log_share = torch.logaddexp(log_share, torch.full_like(log_share, torch.log(torch.tensor(SEG_EPS)).item()))
+    log_seg = log_share - log_share.logsumexp(1, keepdim=True)
+    return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)
 
 
 def render(
@@ -227,61 +292,12 @@ def render(
                              f"a skip_occluded >= theirs ({obj.skip_occluded}), got {skip_occluded}")
     # Cached objects (ShadedSamples) bring their samples, optical thickness and colour along.
     samples = [None if isinstance(obj, ShadedSamples) else _object_samples(obj, dirs_cam, S, generator) for obj in objects]
-    t_obj = [obj.t if s is None else torch.where(s[4][:, None], s[0], torch.full_like(s[0], float("inf")))
-             for obj, s in zip(objects, samples)]
+    t_obj = [obj.t if smp is None else torch.where(smp[4][:, None], smp[0], torch.full_like(smp[0], float("inf")))
+             for obj, smp in zip(objects, samples)]
     t_all = torch.cat(t_obj, 1)
     order = torch.argsort(t_all, dim=1)
-
     keep = [torch.isfinite(t) for t in t_obj]
     if skip_occluded > 0:
-        with torch.no_grad():
-            tau = torch.zeros(R, K * S, device=dev)
-            for k, (obj, s) in enumerate(zip(objects, samples)):
-                if s is None:
-                    tau[:, k * S : (k + 1) * S] = obj.tau
-                    continue
-                m = keep[k]
-                sig = torch.zeros(R, S, device=dev)
-                if m.any():
-                    sig[m] = obj.field.density(s[2][m])
-                tau[:, k * S : (k + 1) * S] = sig * s[1]
-            tau_sorted = torch.gather(tau, 1, order).clamp(0.0, MAX_OPTICAL)
-            csum = torch.cumsum(tau_sorted, 1)
-            excl = torch.cat([torch.zeros_like(csum[:, :1]), csum[:, :-1]], 1)
-            visible_sorted = torch.exp(-excl) > skip_occluded
-            visible = torch.empty_like(visible_sorted).scatter_(1, order, visible_sorted)
-            keep = [keep[k] & visible[:, k * S : (k + 1) * S] for k in range(K)]
-
-    taus, cols = [], []
-    for k, (obj, s) in enumerate(zip(objects, samples)):
-        m = keep[k]
-        if s is None:  # a sample kept here is visible with the object alone: its colour is cached
-            taus.append(torch.where(m, obj.tau, torch.zeros_like(obj.tau)))
-            cols.append(torch.where(m[..., None], obj.col, torch.zeros_like(obj.col)))
-            continue
-        sig = torch.zeros(R, S, device=dev)
-        col = torch.zeros(R, S, 3, device=dev)
-        if m.any():
-            view = s[3][:, None, :].expand(R, S, 3)[m]
-            sg, cl = obj.field.density_and_color(s[2][m], view)
-            sig = sig.masked_scatter(m, sg)
-            col = col.masked_scatter(m[..., None].expand(R, S, 3), cl)
-        taus.append(sig * s[1])
-        cols.append(col)
-    tau = torch.gather(torch.cat(taus, 1), 1, order)
-    col = torch.gather(torch.cat(cols, 1), 1, order[..., None].expand(R, K * S, 3))
-    t_sorted = torch.gather(t_all, 1, order)
-    t_sorted = torch.where(torch.isfinite(t_sorted), t_sorted, torch.zeros_like(t_sorted))
-
-    w, log_w = transmittance_weights(tau)
-    acc = w.sum(1)
-    rgb = (w[..., None] * col).sum(1) + (1.0 - acc)[:, None] * bg
-    depth = (w * t_sorted).sum(1)
-    # Back to per-object order, so each object's share is a logsumexp over its own S samples
-    # (K x S values per ray in all, not K x (K x S) with the others masked out).
-    log_w_obj = torch.empty_like(log_w).scatter(1, order, log_w).view(R, K, S)
-    log_share = log_w_obj.logsumexp(2)
-    # eps floor: rays that hit nothing get a uniform, finite segmentation instead of NaN.
-    log_share = torch.logaddexp(log_share, torch.full_like(log_share, torch.log(torch.tensor(SEG_EPS)).item()))
-    log_seg = log_share - log_share.logsumexp(1, keepdim=True)
-    return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)
+        keep = _visible(objects, samples, keep, order, skip_occluded)
+    shaded = [_shade_kept(obj, smp, m) for obj, smp, m in zip(objects, samples, keep)]
+    return _composite([x[0] for x in shaded], [x[1] for x in shaded], t_all, order, bg)
