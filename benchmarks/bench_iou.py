@@ -1,13 +1,16 @@
 """Learned valid set against training time: the valid-set options side by side, on several scenes.
 
     python benchmarks/bench_iou.py DATASET [DATASET ...] --work DIR [--variants before,after]
-                                   [--inputs INPUTS] [--quiet] [key=value ...]
+                                   [--seeds 0,1,2] [--inputs INPUTS] [--quiet] [key=value ...]
 
 Trains ``osn train`` runs on each ``DATASET`` (a benchgen dataset with ``valid_region.json``;
 oracle inputs unless ``--inputs`` gives `osn preprocess` ones, for a single dataset) into
 ``DIR/<dataset>/<variant>``, one after the other, prints every metrics line (iteration, wall time,
 phase, round, PSNR, valid-set IoU / precision / recall) unless ``--quiet``, and one summary table
-of all runs at the end (final and best IoU, PSNR, wall time). Variants (overrides of
+of all runs at the end (final and best IoU, PSNR, wall time). With ``--seeds`` every variant is
+trained once per seed (``DIR/<dataset>/<variant>-seed<N>``) and the table adds each variant's
+mean and standard deviation over the seeds: one run's IoU moves by +-0.07 with the seed alone
+(docs/training.md), more than most options do. Variants (overrides of
 ``configs/osn-cpu.yaml``; docs/training.md explains each option):
 
 * ``before``: the defaults before 2026-11-25: ``free_space: anchor``, constant scale learning
@@ -34,6 +37,7 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 import yaml
 
@@ -65,11 +69,14 @@ def _value(v: str):
     return yaml.safe_load(v)
 
 
-def run_variant(dataset: str, name: str, base: dict, inputs_dir: str | None, work: Path, quiet: bool) -> tuple:
-    """Train (or read) one variant on one dataset; print its curve; return its summary row."""
+def run_variant(dataset: str, name: str, base: dict, inputs_dir: str | None, work: Path, quiet: bool,
+                seed: int | None = None) -> tuple:
+    """Train (or read) one variant on one dataset (with ``seed``: that seed, in its own directory);
+    print its curve; return its summary row."""
     region = dataset_region(dataset)
-    cfg = TrainConfig.from_dict({**base, **VARIANTS[name]})
-    out = work / Path(dataset).name / name
+    cfg = TrainConfig.from_dict({**base, **VARIANTS[name], **({} if seed is None else {"seed": seed})})
+    label = name if seed is None else f"{name}-seed{seed}"
+    out = work / Path(dataset).name / label
     metrics = out / "metrics.jsonl"
     inputs = load_inputs(inputs_dir) if inputs_dir else oracle_inputs(dataset)
     total = build_schedule(cfg, inputs.num_objects)[-1].end
@@ -82,14 +89,14 @@ def run_variant(dataset: str, name: str, base: dict, inputs_dir: str | None, wor
         train(out, cfg, inputs=inputs, region=region, dataset=dataset, progress=False)
     rows = [json.loads(l) for l in metrics.read_text().splitlines()]
     if not quiet:
-        print(f"\n{Path(dataset).name} / {name}: " + (", ".join(f"{k}={v}" for k, v in VARIANTS[name].items()) or "defaults"))
+        print(f"\n{Path(dataset).name} / {label}: " + (", ".join(f"{k}={v}" for k, v in VARIANTS[name].items()) or "defaults"))
         print(f"{'iter':>5} {'wall s':>7} {'phase':>7} {'rnd':>3} {'PSNR':>6} {'IoU':>6} {'prec':>6} {'recall':>6}")
         for r in rows:
             print(f"{r['iteration']:5d} {r['wall_time']:7.1f} {r['phase']:>7} {r['round']:3d} {r['psnr']:6.2f} "
                   f"{r.get('iou', float('nan')):6.3f} {r.get('precision', float('nan')):6.3f} {r.get('recall', float('nan')):6.3f}", flush=True)
     last = rows[-1]
     final = final_accuracy(out, region)  # today's monitor on the final weights (stratified points)
-    return (Path(dataset).name, name, last["wall_time"], last["psnr"], final.get("iou", float("nan")),
+    return (Path(dataset).name, label, last["wall_time"], last["psnr"], final.get("iou", float("nan")),
             final.get("precision", float("nan")), final.get("recall", float("nan")), max(r.get("iou", 0.0) for r in rows))
 
 
@@ -108,6 +115,8 @@ def main() -> None:
     ap.add_argument("datasets", nargs="+", help="benchgen datasets with valid_region.json")
     ap.add_argument("--work", required=True, help="directory of the runs (DIR/<dataset>/<variant>)")
     ap.add_argument("--variants", default="before,after", help=f"comma-separated, of {','.join(VARIANTS)}")
+    ap.add_argument("--seeds", default=None, help="comma-separated seeds: each variant once per seed, with mean and "
+                    "standard deviation (default: the config's seed, one run)")
     ap.add_argument("--inputs", default=None, help="per-object inputs (osn preprocess) of a single dataset; default: oracle")
     ap.add_argument("--quiet", action="store_true", help="only the summary table")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides for every variant")
@@ -120,12 +129,24 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     base = TrainConfig.from_yaml(Path(__file__).resolve().parents[1] / "configs" / "osn-cpu.yaml").to_dict()
     base.update({k: _value(v) for k, v in (o.split("=", 1) for o in overrides)})
-    summary = [run_variant(d, name, base, args.inputs, Path(args.work), args.quiet)
-               for d in datasets for name in args.variants.split(",")]
+    seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [None]
     print("\n| dataset | variant | train s | PSNR | final IoU | precision | recall | best IoU logged |")
     print("|---|---|---|---|---|---|---|---|")
-    for d, name, w, p, i, pr, rc, best in summary:
-        print(f"| {d} | {name} | {w:.0f} | {p:.2f} | {i:.3f} | {pr:.3f} | {rc:.3f} | {best:.3f} |")
+    rows = []
+    for d in datasets:
+        for name in args.variants.split(","):
+            runs = [run_variant(d, name, base, args.inputs, Path(args.work), args.quiet, seed) for seed in seeds]
+            rows += runs
+            if len(runs) > 1:
+                cols = np.array([r[2:] for r in runs], dtype=np.float64)
+                mean, sd = cols.mean(0), cols.std(0, ddof=1)
+                rows.append((runs[0][0], f"{name}, mean +- sd of {len(runs)} seeds", *zip(mean, sd)))
+    for d, name, w, p, i, pr, rc, best in rows:
+        if isinstance(w, tuple):
+            print(f"| {d} | {name} | {w[0]:.0f} +- {w[1]:.0f} | {p[0]:.2f} +- {p[1]:.2f} | {i[0]:.3f} +- {i[1]:.3f} | "
+                  f"{pr[0]:.3f} +- {pr[1]:.3f} | {rc[0]:.3f} +- {rc[1]:.3f} | {best[0]:.3f} +- {best[1]:.3f} |")
+        else:
+            print(f"| {d} | {name} | {w:.0f} | {p:.2f} | {i:.3f} | {pr:.3f} | {rc:.3f} | {best:.3f} |")
 
 
 if __name__ == "__main__":
