@@ -81,7 +81,7 @@ def run_variant(dataset: str, name: str, base: dict, inputs_dir: str | None, wor
     inputs = load_inputs(inputs_dir) if inputs_dir else oracle_inputs(dataset)
     total = build_schedule(cfg, inputs.num_objects)[-1].end
     done = metrics.exists() and any(json.loads(l)["iteration"] == total for l in metrics.read_text().splitlines())
-    if done and TrainConfig.from_yaml(out / "config.yaml") != cfg:
+    if done and TrainConfig.from_yaml(out / "config.yaml", run_config=True) != cfg:
         raise SystemExit(f"{out} holds a run of another config (the defaults changed?); remove it or pick another --work")
     if not done:
         if out.exists():
@@ -104,7 +104,7 @@ def final_accuracy(run: Path, region) -> dict:
     """The training monitor's valid-set accuracy of the run's last checkpoint, measured now: runs
     written before the monitor's stratified points (2026-11-25) logged a uniform-sample IoU of 0
     for regions of 1e-6 of the box."""
-    cfg = TrainConfig.from_yaml(run / "config.yaml")
+    cfg = TrainConfig.from_yaml(run / "config.yaml", run_config=True)
     tr = Trainer(load_inputs(run / "inputs"), cfg, torch.device("cpu"))
     tr.load_state_dict(read_checkpoint(run / "checkpoint.pt"))
     return TrainingMonitor(tr, region)()

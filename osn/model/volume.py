@@ -42,12 +42,14 @@ class RenderOutput:
         depth: ``(R,)`` expected planar depth ``sum_i w_i t_i`` in the rays' ``t`` unit.
         acc: ``(R,)`` accumulated opacity in [0, 1].
         log_seg: ``(R, K)`` log of each object's share of the weights (soft segmentation).
+        distortion: ``(R,)`` the weights' spread along the ray (:func:`distortion`), when asked for.
     """
 
     rgb: torch.Tensor
     depth: torch.Tensor
     acc: torch.Tensor
     log_seg: torch.Tensor
+    distortion: torch.Tensor | None = None
 
     def normalised_depth(self, min_acc: float = 1e-6) -> torch.Tensor:
         """Depth ``(R,)`` of the visible surface, ``depth / acc``; ``+inf`` where ``acc <= min_acc``.
@@ -230,15 +232,35 @@ def _shade_kept(obj: ObjectRays | ShadedSamples, samples: tuple | None, keep: to
     return sig * samples[1], col
 
 
+def distortion(w: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """How spread out a ray's weights are, ``(R,)``, for weights ``w (R, S)`` of depth-sorted samples
+    ``t (R, S)`` (``+inf`` where there is no sample) that split the ray's sampled interval evenly.
+
+    Mip-NeRF 360's distortion loss, ``sum_ij w_i w_j |s_i - s_j| + sum_i w_i^2 / (3 S)``, with
+    ``s`` the position in the ray's sampled interval (0 to 1, so the value does not depend on the
+    object's unit or size): a fog spread over the interval scores up to ~1/3, one opaque sample
+    1/(3S). The double sum is two cumulative sums, O(S) per ray.
+    """
+    finite = torch.isfinite(t)
+    lo = torch.where(finite, t, torch.full_like(t, float("inf"))).amin(1, keepdim=True)
+    hi = torch.where(finite, t, torch.full_like(t, -float("inf"))).amax(1, keepdim=True)
+    span = torch.where(hi > lo, hi - lo, torch.ones_like(hi))  # guarded: a missed ray has no span
+    s = torch.where(finite, (t - torch.where(finite, lo, torch.zeros_like(lo))) / span, torch.ones_like(t))
+    w_before = torch.cumsum(w, 1) - w
+    ws_before = torch.cumsum(w * s, 1) - w * s
+    between = 2.0 * (w * (s * w_before - ws_before)).sum(1)
+    return between + w.square().sum(1) / (3.0 * t.shape[1])
+
+
 def _composite(taus: list[torch.Tensor], cols: list[torch.Tensor], t_all: torch.Tensor, order: torch.Tensor,
-               bg: torch.Tensor) -> RenderOutput:
+               bg: torch.Tensor, with_distortion: bool = False) -> RenderOutput:
     """Merge K objects' samples (per object ``(R, S)`` optical thickness and ``(R, S, 3)`` colour,
     planar depths ``t_all (R, K*S)``) in depth order ``order`` into one :class:`RenderOutput`."""
     R, K, S = order.shape[0], len(taus), taus[0].shape[1]
     tau = torch.gather(torch.cat(taus, 1), 1, order)
     col = torch.gather(torch.cat(cols, 1), 1, order[..., None].expand(R, K * S, 3))
-    t_sorted = torch.gather(t_all, 1, order)
-    t_sorted = torch.where(torch.isfinite(t_sorted), t_sorted, torch.zeros_like(t_sorted))
+    t_raw = torch.gather(t_all, 1, order)
+    t_sorted = torch.where(torch.isfinite(t_raw), t_raw, torch.zeros_like(t_raw))
 
     w, log_w = transmittance_weights(tau)
     acc = w.sum(1)
@@ -251,7 +273,8 @@ def _composite(taus: list[torch.Tensor], cols: list[torch.Tensor], t_all: torch.
     # eps floor: rays that hit nothing get a uniform, finite segmentation instead of NaN.
     log_share = torch.logaddexp(log_share, torch.full_like(log_share, torch.log(torch.tensor(SEG_EPS)).item()))
     log_seg = log_share - log_share.logsumexp(1, keepdim=True)
-    return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)
+    dist = distortion(w, t_raw) if with_distortion else None
+    return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg, distortion=dist)
 
 
 def render(
@@ -261,6 +284,7 @@ def render(
     generator: torch.Generator | None = None,
     background: torch.Tensor | None = None,
     skip_occluded: float = 0.0,
+    with_distortion: bool = False,
 ) -> RenderOutput:
     """Render a ray batch of K objects composited (a single object = rendering it alone).
 
@@ -279,6 +303,7 @@ def render(
         skip_occluded: when > 0, a gradient-free density pass first finds samples whose
             transmittance is below this value; only the others are evaluated with gradients
             and colour (their omission changes ``acc`` by less than ``skip_occluded``).
+        with_distortion: also return each ray's :func:`distortion` (meant for one object alone).
     """
     R, K, S = dirs_cam.shape[0], len(objects), n_samples
     dev = dirs_cam.device
@@ -300,4 +325,4 @@ def render(
     if skip_occluded > 0:
         keep = _visible(objects, samples, keep, order, skip_occluded)
     shaded = [_shade_kept(obj, smp, m) for obj, smp, m in zip(objects, samples, keep)]
-    return _composite([x[0] for x in shaded], [x[1] for x in shaded], t_all, order, bg)
+    return _composite([x[0] for x in shaded], [x[1] for x in shaded], t_all, order, bg, with_distortion)

@@ -23,6 +23,7 @@ _FRACTIONS = ("label_replay", "label_trim", "final_label_trim", "pair_minority",
 
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
+    "w_distortion": number(0.0),
     **{name: integer(1) for name in _POSITIVE},
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
@@ -30,6 +31,11 @@ _RULES: dict[str, Rule] = {
     "valid_threshold": number(0.0, 1.0, hi_open=True),
     "free_space": choice("none", "anchor", "objects", "all"),
 }
+
+
+#: Options added after runs were first written, with the value that trained those runs (the
+#: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
+ADDED_LATER: dict[str, Any] = {"w_distortion": 0.0}
 
 
 @dataclass
@@ -57,6 +63,7 @@ class TrainConfig:
     w_seg: float = 0.01
     w_opacity: float = 1.0
     w_free: float = 1.0
+    w_distortion: float = 0.03
     w_alone: float = 1.0
     free_space: str = "objects"
     free_rays: int = 128
@@ -98,10 +105,19 @@ class TrainConfig:
         return from_dict(cls, d, "training", nested={"field": (FieldConfig, "field")})
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "TrainConfig":
-        """Read a YAML config; every error is a ``ValueError`` prefixed with ``path``."""
+    def from_yaml(cls, path: str | Path, run_config: bool = False) -> "TrainConfig":
+        """Read a YAML config; every error is a ``ValueError`` prefixed with ``path``.
+
+        Omitted keys take the defaults, except with ``run_config`` (a run's own ``config.yaml``,
+        which lists every key it trained with): there a key it lacks was added after it was
+        written and takes the value it trained with (:data:`ADDED_LATER`), so resuming or
+        comparing an older run does not silently switch a new term on.
+        """
         try:
-            return cls.from_dict(yaml.safe_load(Path(path).read_text()) or {})
+            d = yaml.safe_load(Path(path).read_text()) or {}
+            if run_config and isinstance(d, dict):
+                d = {**ADDED_LATER, **d}
+            return cls.from_dict(d)
         except (ValueError, TypeError, yaml.YAMLError) as e:
             raise ValueError(f"{path}: {e}") from None
 

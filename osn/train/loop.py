@@ -153,7 +153,7 @@ def train(
     out = Path(out)
     check_run_directory(out, resume)
     if resume:
-        cfg = TrainConfig.from_yaml(out / "config.yaml")
+        cfg = TrainConfig.from_yaml(out / "config.yaml", run_config=True)
         inputs = load_inputs(out / "inputs")
     else:
         if inputs is None:

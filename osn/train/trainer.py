@@ -164,6 +164,8 @@ class Trainer:
         opacity, free space, TV) and its terms per object."""
         st, cfg = self.st, self.cfg
         losses = {"rgb": 0.0, "depth": 0.0, "opacity": 0.0, "free": 0.0}
+        if cfg.w_distortion > 0:
+            losses["distortion"] = 0.0
         total = 0.0
         one = torch.ones(1, device=self.device)
         for k in range(st.K):
@@ -178,7 +180,7 @@ class Trainer:
             else:
                 d_gt = torch.zeros(0, device=self.device)
             rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
-            out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+            out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
             l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
             l_depth = self._depth_loss(out.depth[n_rgb:], d_gt)
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
@@ -186,6 +188,12 @@ class Trainer:
             # ray shortens) then pushes its surfaces behind the true ones (the room by ~6-10%).
             l_acc = (1.0 - out.acc).square().mean()
             total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
+            if cfg.w_distortion > 0:
+                # The object's own pixels show one surface: a fog spread along the ray has the right
+                # expected depth where sparse depths hold it, and any depth elsewhere (docs/training.md).
+                l_dist = out.distortion[:n_rgb].mean()
+                total = total + cfg.w_distortion * l_dist
+                losses["distortion"] += l_dist.item() / st.K
             l_free = self._free_loss(k)
             total = total + cfg.w_free * l_free
             losses["free"] += l_free.item() / st.K

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import minority_pairs, order_constraints, trimmed_labels
-from osn.model.volume import ObjectRays, ray_box, render, shade, transmittance_weights
+from osn.model.volume import ObjectRays, distortion, ray_box, render, shade, transmittance_weights
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -103,6 +103,37 @@ def test_composite_occlusion_and_segmentation() -> None:
         assert torch.all(out.log_seg.argmax(1) == front)
         assert torch.all(torch.isfinite(out.log_seg))
         assert torch.allclose(out.log_seg.exp().sum(1), torch.ones(n), atol=1e-5)
+
+
+def test_distortion_is_the_double_sum_and_does_not_depend_on_the_unit() -> None:
+    """The cumulative-sum distortion equals the O(S^2) definition on random sorted samples (rays
+    that end early carry +inf samples), is 1/(3S) for one opaque sample, larger for a fog, 0 for
+    a missed ray, and the same in any unit or at any depth (1e-6 to 1e6)."""
+    g = torch.Generator().manual_seed(0)
+    R, S = 64, 24
+    t = torch.sort(torch.rand(R, S, generator=g), 1).values
+    t[::4, S // 2 :] = float("inf")  # rays whose box ends early
+    tau = 3.0 * torch.rand(R, S, generator=g) ** 4
+    tau = torch.where(torch.isfinite(t), tau, torch.zeros_like(tau))
+    w, _ = transmittance_weights(tau)
+    fin = torch.isfinite(t)
+    lo = torch.where(fin, t, torch.full_like(t, 1e9)).amin(1, keepdim=True)
+    hi = torch.where(fin, t, torch.full_like(t, -1e9)).amax(1, keepdim=True)
+    s = torch.where(fin, (t - lo) / (hi - lo), torch.zeros_like(t))
+    brute = (w[:, :, None] * w[:, None, :] * (s[:, :, None] - s[:, None, :]).abs()).sum((1, 2)) + w.square().sum(1) / (3 * S)
+    d = distortion(w, t)
+    assert torch.allclose(d, brute, atol=1e-6)
+    for unit, offset in ((1e-6, 0.0), (1e6, 0.0), (1.0, 1e3)):
+        assert torch.allclose(distortion(w, t * unit + offset), d, atol=1e-4)
+    line = torch.linspace(1.0, 2.0, S)[None].repeat(3, 1)
+    tau3 = torch.zeros(3, S)
+    tau3[0, 5] = 1e4  # opaque
+    tau3[1] = 0.2  # fog over the whole interval
+    w3, _ = transmittance_weights(tau3)
+    d3 = distortion(w3, line)
+    assert abs(float(d3[0]) - 1 / (3 * S)) < 1e-6 and float(d3[1]) > 10 * float(d3[0]) and float(d3[2]) == 0.0
+    miss = distortion(torch.zeros(2, S), torch.full((2, S), float("inf")))
+    assert torch.equal(miss, torch.zeros(2))
 
 
 def test_absent_objects_and_empty_rays_are_finite() -> None:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
+import yaml
 
 from osn.model.fields import FieldConfig
 from osn.train import TrainConfig
@@ -41,6 +43,18 @@ def test_config_round_trips_and_checks_the_field_section(tmp_path: Path) -> None
     path.write_text("field:\n  resolution: 1\n")
     with pytest.raises(ValueError, match=f"^{path}: field config: resolution must be an integer >= 2, got 1"):
         TrainConfig.from_yaml(path)
+
+
+def test_a_run_config_written_before_a_new_term_keeps_it_off(tmp_path: Path) -> None:
+    """A run's config.yaml without ``w_distortion`` (written before it existed) resumes and
+    compares with the term off; a user's partial config takes the default."""
+    d = TrainConfig().to_dict()
+    del d["w_distortion"]
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(d))
+    assert TrainConfig.from_yaml(path, run_config=True).w_distortion == 0.0
+    assert TrainConfig.from_yaml(path).w_distortion == TrainConfig().w_distortion > 0
+    assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), w_distortion=0.0)
 
 
 @pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0},
