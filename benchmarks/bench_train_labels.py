@@ -32,7 +32,6 @@ from osn.model.depth_order import trimmed_labels
 from scenecore.validity import set_accuracy
 from osn.cli.train import dataset_region
 from osn.train import Phase, TrainConfig, Trainer, TrainingMonitor
-from osn.train.config import ADDED_LATER
 
 from benchutil import print_command
 
@@ -47,7 +46,7 @@ def main() -> None:
     print_command()
     logging.basicConfig(level=logging.ERROR)
     run = Path(a.run)
-    d = {**ADDED_LATER, **yaml.safe_load((run / "config.yaml").read_text())}  # terms added since the run: off
+    d = TrainConfig.from_yaml(run / "config.yaml", run_config=True).to_dict()
     for kv in a.overrides:
         k, v = kv.split("=", 1)
         d[k] = yaml.safe_load(v)
