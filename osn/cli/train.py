@@ -30,6 +30,18 @@ def dataset_region(dataset: str | Path | None) -> ValidRegion | None:
     return load_valid_region(dataset)
 
 
+def _refuse_silent_monitor_loss(out: Path) -> None:
+    """A run started against a dataset and resumed without it would stop measuring its valid set
+    halfway through ``metrics.jsonl``; ask for the dataset instead."""
+    try:
+        started = json.loads((out / "run.json").read_text()).get("dataset")
+    except (OSError, ValueError):
+        return  # no provenance to go by (an older or hand-made run)
+    if started:
+        raise UserError(f"{out}: this run was started against the dataset {started} (run.json) and measures its valid "
+                        f"set there; pass it again: osn train {started} --out {out} --resume")
+
+
 def train_on_dataset(
     dataset: str | Path | None,
     out: str | Path,
@@ -47,6 +59,8 @@ def train_on_dataset(
     if dataset is None and inputs is None and not resume:
         raise UserError(f"{out}: give a benchgen DATASET or --inputs DIR (from `osn preprocess`)")
     check_run_directory(out, resume)  # before the oracle inputs cost anything
+    if resume and dataset is None:
+        _refuse_silent_monitor_loss(Path(out))
     region = dataset_region(dataset)
     if not resume and inputs is None:
         inputs = oracle_inputs(dataset)

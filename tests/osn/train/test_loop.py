@@ -115,6 +115,17 @@ def test_resume_refuses_a_new_config_or_inputs(tmp_path: Path) -> None:
     assert r.returncode == 2 and "drop --config/--inputs" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_resume_without_the_dataset_it_started_with_is_refused(tiny_dataset: Path, tmp_path: Path) -> None:
+    """Resumed without DATASET, a monitored run would drop its valid-set columns halfway through
+    metrics.jsonl (seen on a GPU run): the CLI names the dataset to pass instead."""
+    run = tmp_path / "run"
+    train(run, _cfg(stage1_iters=2, rounds=0, final_scale_iters=0), inputs=oracle_inputs(tiny_dataset),
+          dataset=tiny_dataset, progress=False)
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "train", "--out", str(run), "--resume"], capture_output=True, text=True)
+    assert r.returncode == 2 and f"pass it again: osn train {tiny_dataset} --out {run} --resume" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
 def test_metrics_reader_skips_a_line_cut_by_a_kill(tmp_path: Path) -> None:
     """The report and the CLI summary read metrics.jsonl after a kill mid-write: the cut line
     (and anything that is not a record) is skipped instead of failing the whole evaluation."""
