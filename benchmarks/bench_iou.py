@@ -110,6 +110,17 @@ def final_accuracy(run: Path, region) -> dict:
     return TrainingMonitor(tr, region)()
 
 
+#: Number formats of the table's value columns: train s, PSNR, final IoU, precision, recall, best IoU.
+COLUMN_FORMATS = (".0f", ".2f", ".3f", ".3f", ".3f", ".3f")
+
+
+def _cell(value: float | tuple[float, float], fmt: str) -> str:
+    """One run's value, or ``(mean, sd)`` over seeds as ``mean +- sd``."""
+    if isinstance(value, tuple):
+        return f"{value[0]:{fmt}} +- {value[1]:{fmt}}"
+    return f"{value:{fmt}}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("datasets", nargs="+", help="benchgen datasets with valid_region.json")
@@ -141,12 +152,8 @@ def main() -> None:
                 cols = np.array([r[2:] for r in runs], dtype=np.float64)
                 mean, sd = cols.mean(0), cols.std(0, ddof=1)
                 rows.append((runs[0][0], f"{name}, mean +- sd of {len(runs)} seeds", *zip(mean, sd)))
-    for d, name, w, p, i, pr, rc, best in rows:
-        if isinstance(w, tuple):
-            print(f"| {d} | {name} | {w[0]:.0f} +- {w[1]:.0f} | {p[0]:.2f} +- {p[1]:.2f} | {i[0]:.3f} +- {i[1]:.3f} | "
-                  f"{pr[0]:.3f} +- {pr[1]:.3f} | {rc[0]:.3f} +- {rc[1]:.3f} | {best[0]:.3f} +- {best[1]:.3f} |")
-        else:
-            print(f"| {d} | {name} | {w:.0f} | {p:.2f} | {i:.3f} | {pr:.3f} | {rc:.3f} | {best:.3f} |")
+    for d, name, *values in rows:
+        print(f"| {d} | {name} | " + " | ".join(_cell(v, f) for v, f in zip(values, COLUMN_FORMATS)) + " |")
 
 
 if __name__ == "__main__":
