@@ -121,6 +121,8 @@ def report_lines(objects: list[dict]) -> list[str]:
         if "rotation_error_deg_max" in r:
             line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
                      f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")
+        if r.get("sparse_depths_off_10pct") is not None:
+            line += f", sparse depths >10% off {100 * r['sparse_depths_off_10pct']:.1f}%"
         lines.append(line)
         for f in r.get("repaired_frames", []):
             lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "

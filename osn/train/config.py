@@ -24,6 +24,7 @@ _FRACTIONS = ("label_replay", "label_trim", "final_label_trim", "pair_minority",
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
+    "depth_robust": number(0.0),
     **{name: integer(1) for name in _POSITIVE},
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
@@ -60,6 +61,7 @@ class TrainConfig:
     skip_occluded: float = 1e-3
     w_rgb: float = 1.0
     w_depth: float = 1.0
+    depth_robust: float = 0.0
     w_seg: float = 0.01
     w_opacity: float = 1.0
     w_free: float = 1.0

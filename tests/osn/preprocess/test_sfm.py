@@ -42,6 +42,7 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     room = by_id[0]
     assert room["registered_fraction"] >= 0.9 and room["rotation_error_deg_max"] <= 1.0, room
     assert room["center_error_m_mean"] <= 0.02, room
+    assert 0.0 <= room["sparse_depths_off_10pct"] < 0.5, room  # the report names SfM's phantom depths
     # Small foreground objects (~30 px across at 128 px): registered within a few degrees, or
     # dropped with a message that names the counts and the remedy (never silently wrong).
     for oid in (1, 2):
@@ -327,6 +328,25 @@ def test_exact_poses_align_to_ground_truth_without_error(tiny_dataset):
         assert acc["rotation_error_deg_max"] < 1e-4 and acc["center_error_m_max"] < 1e-9, acc
         assert acc["similarity_unit_ratio"] == pytest.approx(1.0, rel=1e-9)
         assert acc["gt_visible_frames"] == len(frames) and acc["registered_fraction"] == 1.0
+
+
+def test_sparse_depth_outliers_count_depths_off_the_ground_truth(tiny_dataset):
+    """The report's share of SfM sparse depths > 10% off the ground truth: none for exact depths,
+    exactly the moved ones when some are moved to half their depth (a phantom floor)."""
+    from scenecore import dataset as D
+
+    oracle = oracle_inputs(tiny_dataset)
+    _, depths, _ = D.read_training_video(tiny_dataset, D.load_scene(tiny_dataset))
+    for o in oracle.objects:
+        assert alignment.sparse_depth_outliers(o, depths) == 0.0
+    room = oracle.object(oracle.anchor)
+    moved = [np.arange(len(d)) % 4 == 0 for d in room.sparse_depth]
+    for d, m in zip(room.sparse_depth, moved):
+        d[m] *= 0.5
+    share = float(np.concatenate(moved).mean())
+    assert alignment.sparse_depth_outliers(room, depths) == pytest.approx(share, abs=1e-12)
+    room.unit_to_world = None
+    assert alignment.sparse_depth_outliers(room, depths) is None
 
 
 def test_a_frame_posed_against_its_own_matches_is_reposed_or_dropped(sfm_scene, tmp_path):

@@ -16,6 +16,7 @@ from osn.preprocess.oracle import oracle_inputs
 from osn.train import Trainer, build_schedule
 from osn.train.labels import label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
+from osn.train.trainer import sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
 
 
@@ -251,3 +252,54 @@ def test_final_scale_phase_labels_with_final_label_trim(tiny_dataset: Path) -> N
     assert tr.step_scale(final)["valid_frac"] == 1.0
     tr.cfg = dataclasses.replace(cfg, final_label_trim=0.0)
     assert tr.step_scale(final)["valid_frac"] < 0.9
+
+
+def test_sparse_depth_loss_is_the_squared_error_for_most_depths_and_bounded_for_far_ones() -> None:
+    t = torch.ones(100, dtype=torch.float64)
+    r = torch.linspace(-0.02, 0.02, 100, dtype=torch.float64)
+    r[:10] = 0.5  # ten phantom depths, half a unit off
+    d = (t + r).requires_grad_(True)
+    assert torch.equal(sparse_depth_loss(d, t, 0.0), r.square().mean())
+    sparse_depth_loss(d, t, 3.0).backward()
+    g = d.grad.numpy() * 100  # per depth: 2r / (1 + r^2 / c^2), c = 3 x median |r|
+    plain = 2 * r.numpy()
+    inliers = (np.abs(r.numpy()) <= float(r.abs().median())) & (r.numpy() != 0)
+    ratio = g[inliers] / plain[inliers]  # 1 / (1 + r^2 / c^2) >= 1 / (1 + 1/9) up to the median
+    assert inliers.sum() >= 45 and np.all((ratio >= 0.9 - 1e-9) & (ratio <= 1.0 + 1e-9))
+    assert np.all(g[:10] < 0.01 * plain[:10])  # the phantoms pull < 1% of what they would
+    # Extreme residuals and an exact fit stay finite; an empty batch is zero.
+    for res in (torch.full((4,), 1e6), torch.zeros(4), torch.tensor([0.0, 0.0, 0.0, 1e-30])):
+        dd = (1.0 + res.double()).requires_grad_(True)
+        loss = sparse_depth_loss(dd, torch.ones(4, dtype=torch.float64), 3.0)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.all(torch.isfinite(dd.grad))
+    assert float(sparse_depth_loss(d.detach()[:0], t[:0], 3.0)) == 0.0
+
+
+def test_robust_depth_loss_keeps_phantom_sparse_depths_from_pulling_the_surface(tiny_dataset: Path) -> None:
+    """A quarter of the room's sparse depths moved to half their depth (what SfM triangulates on a
+    checker floor): after stage 1 with the robust loss the room renders closer to its true depth
+    at those pixels, and no farther elsewhere, than with the squared error."""
+    def errors(robust: float) -> tuple[float, float]:
+        inputs = oracle_inputs(tiny_dataset)
+        room = inputs.object(inputs.anchor)
+        truth = np.concatenate(room.sparse_depth)
+        rng = np.random.default_rng(0)
+        moved = [rng.random(len(d)) < 0.25 for d in room.sparse_depth]
+        for d, m in zip(room.sparse_depth, moved):
+            d[m] *= 0.5
+        tr = Trainer(inputs, _cfg(depth_robust=robust), torch.device("cpu"))
+        for _ in range(240):
+            tr.step_stage1()
+        frames = torch.cat([torch.full((len(p),), int(f)) for f, p in zip(room.frames, room.sparse_pix)])
+        pix = torch.from_numpy(np.concatenate([p[:, 1] * tr.st.W + p[:, 0] for p in room.sparse_pix]))
+        with torch.no_grad():
+            rays = tr.st.object_rays(tr.fields, frames, torch.ones(tr.st.K), [inputs.anchor_pos])
+            depth = render(rays, tr.st.dirs[pix], tr.cfg.samples).depth.numpy()
+        err, m = np.abs(depth - truth) / truth, np.concatenate(moved)
+        return float(np.median(err[m])), float(np.median(err[~m]))
+
+    (robust_moved, robust_kept), (plain_moved, plain_kept) = errors(3.0), errors(0.0)
+    # measured 0.157 / 0.115 against 0.186 / 0.130 (fixed seeds)
+    assert robust_moved < 0.9 * plain_moved, (robust_moved, plain_moved)
+    assert robust_kept <= plain_kept, (robust_kept, plain_kept)
