@@ -24,7 +24,7 @@ _FRACTIONS = ("label_replay", "label_trim", "final_label_trim", "pair_minority",
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
-    "depth_robust": number(0.0),
+    "depth_robust": Rule(lambda v: v == "auto" or number(0.0).ok(v), "auto or a number >= 0"),
     **{name: integer(1) for name in _POSITIVE},
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
@@ -36,7 +36,21 @@ _RULES: dict[str, Rule] = {
 
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
-ADDED_LATER: dict[str, Any] = {"w_distortion": 0.0}
+ADDED_LATER: dict[str, Any] = {"w_distortion": 0.0, "depth_robust": 0.0}
+
+
+#: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
+#: scale of the sparse-depth loss in multiples of the batch's median residual (docs/preprocess.md).
+DEPTH_ROBUST_SFM = 3.0
+
+
+def resolve_depth_robust(value: float | str, source: str) -> float:
+    """The sparse-depth loss's robustness for inputs from ``source``: ``auto`` is the squared
+    error on the oracle's exact depths (robust there it cost the demo's valid set 0.035 IoU) and
+    :data:`DEPTH_ROBUST_SFM` on anything else, whose depths hold SfM's phantom points."""
+    if value == "auto":
+        return 0.0 if source == "oracle" else DEPTH_ROBUST_SFM
+    return float(value)
 
 
 @dataclass
@@ -61,7 +75,7 @@ class TrainConfig:
     skip_occluded: float = 1e-3
     w_rgb: float = 1.0
     w_depth: float = 1.0
-    depth_robust: float = 0.0
+    depth_robust: float | str = "auto"  # resolved by resolve_depth_robust
     w_seg: float = 0.01
     w_opacity: float = 1.0
     w_free: float = 1.0

@@ -23,7 +23,7 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import TrainConfig
+from osn.train.config import TrainConfig, resolve_depth_robust
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
@@ -60,6 +60,7 @@ class Trainer:
     def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
         self.cfg, self.device = cfg, device
         self.st = SceneTensors(inputs, device)
+        self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         K = self.st.K
         if self.st.unposed_pixels:
             log.warning("%d mask pixels belong to objects without a pose in their frame (not registered there); "
@@ -151,7 +152,7 @@ class Trainer:
         return torch.randint(n, (size,), generator=self.gen).to(self.device)
 
     def _depth_loss(self, out_depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return sparse_depth_loss(out_depth, target, self.cfg.depth_robust)
+        return sparse_depth_loss(out_depth, target, self.depth_robust)
 
     def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see

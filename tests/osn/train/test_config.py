@@ -10,13 +10,14 @@ import yaml
 
 from osn.model.fields import FieldConfig
 from osn.train import TrainConfig
-from osn.train.config import label_stride
+from osn.train.config import DEPTH_ROBUST_SFM, label_stride, resolve_depth_robust
 from tests.osn.train.common import small_config
 
 
 @pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
                                  {"valid_threshold": 1.5}, {"valid_threshold": 1.0}, {"rounds": "five"},
-                                 {"label_replay": "high"}, {"free_space": "walls"}])
+                                 {"label_replay": "high"}, {"free_space": "walls"}, {"depth_robust": -1.0},
+                                 {"depth_robust": "always"}])
 def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
     (key, value), = bad.items()
     with pytest.raises(ValueError, match=f"{key} must"):
@@ -68,3 +69,12 @@ def test_field_config_rejects_impossible_values(bad: dict) -> None:
 def test_auto_label_stride_keeps_the_pool_size_of_a_128_pixel_frame() -> None:
     assert [label_stride(0, s, s) for s in (32, 64, 128, 129, 256, 512)] == [1, 1, 1, 2, 2, 4]
     assert label_stride(0, 300, 512) == 4 and label_stride(3, 512, 512) == 3
+
+
+def test_auto_depth_robustness_is_off_for_exact_depths_only() -> None:
+    """``depth_robust: auto``: the squared error on the oracle's exact depths, the robust loss on
+    SfM's and on anything else's; a number is taken as it is."""
+    assert TrainConfig().depth_robust == "auto"
+    assert resolve_depth_robust("auto", "oracle") == 0.0
+    assert resolve_depth_robust("auto", "colmap") == resolve_depth_robust("auto", "unknown") == DEPTH_ROBUST_SFM > 0
+    assert resolve_depth_robust(0, "colmap") == 0.0 and resolve_depth_robust(2.5, "oracle") == 2.5

@@ -303,3 +303,11 @@ def test_robust_depth_loss_keeps_phantom_sparse_depths_from_pulling_the_surface(
     # measured 0.157 / 0.115 against 0.186 / 0.130 (fixed seeds)
     assert robust_moved < 0.9 * plain_moved, (robust_moved, plain_moved)
     assert robust_kept <= plain_kept, (robust_kept, plain_kept)
+
+
+def test_trainer_resolves_auto_depth_robustness_from_the_inputs_source(tiny_dataset: Path) -> None:
+    inputs = oracle_inputs(tiny_dataset)
+    assert Trainer(inputs, _cfg(), torch.device("cpu")).depth_robust == 0.0  # exact depths: squared error
+    inputs.source = "colmap"
+    assert Trainer(inputs, _cfg(), torch.device("cpu")).depth_robust == 3.0
+    assert Trainer(inputs, _cfg(depth_robust=0.0), torch.device("cpu")).depth_robust == 0.0
