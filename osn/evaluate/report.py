@@ -13,7 +13,7 @@ from typing import Any
 import io
 import numpy as np
 
-from scenecore.dataset import atomic_write_bytes, atomic_write_json
+from scenecore.dataset import atomic_write_bytes, atomic_write_json, read_json
 from osn.evaluate.bestofn import TRUE_SCALES, EvalResult
 from osn.train import read_metrics
 
@@ -33,6 +33,20 @@ def _unposed_lines(e: dict[str, Any]) -> list[str]:
         "test pixels show such an object and count as errors in every figure below.",
         "",
     ]
+
+
+def _inputs_line(run_dir: Path) -> str:
+    """What the run trained on: the oracle is an ablation, SfM is the method as published."""
+    try:
+        source = read_json(Path(run_dir) / "inputs" / "inputs.json").get("source", "unknown")
+    except (OSError, ValueError, AttributeError):
+        source = "unknown"
+    if source == "oracle":
+        return ("Inputs: **oracle** (per-object poses and sparse depths from the ground truth: an ablation that "
+                "separates learning errors from SfM errors, not the method as published).")
+    if source == "colmap":
+        return "Inputs: per-object SfM (pycolmap), as the method is published."
+    return f"Inputs: {source}."
 
 
 def _true_scales_note(e: dict[str, Any]) -> str:
@@ -171,6 +185,8 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         "# OSN evaluation report",
         "",
         f"Command: `{command}`",
+        "",
+        _inputs_line(run_dir),
         "",
         f"{e['num_samples']} sampled configurations against {e['num_gt']} ground-truth configurations on "
         f"{e['num_views']} test views each; {100 * e['covisible_fraction']:.1f}% of test pixels are co-visible "

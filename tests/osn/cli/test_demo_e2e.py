@@ -65,6 +65,7 @@ def test_outputs_are_sensible(demo):
     assert len(m["extra"]["true_scales_psnr"]) == 3
     report = (demo / "report" / "report.md").read_text()
     assert "| true scales |" in report and "match their own scales" in report
+    assert "Inputs: **oracle**" in report and "not the method as published" in report  # the ablation is labelled
     assert report.count("![") >= 3
     row = next(ln for ln in report.splitlines() if ln.startswith("| training time"))
     assert " dB / " in row  # the time is reported with what it bought (PSNR / IoU)
