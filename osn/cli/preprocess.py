@@ -83,7 +83,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = subcommand(sub, "oracle", _cmd_oracle, "per-object inputs from a dataset's ground truth (what perfect SfM would give)")
     p.add_argument("dataset", help="benchgen dataset directory")
     p.add_argument("--out", required=True, help="output directory (inputs.json + inputs.npz)")
-    p.add_argument("--points-per-frame", type=int, default=256, help="sparse depths kept per object and frame")
+    p.add_argument("--points-per-frame", type=int, default=0,
+                   help="sparse depths kept per object and frame (0: a sixteenth of the frame's pixels, at least 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sparse subsampling")
 
     p = subcommand(

@@ -102,7 +102,7 @@ def test_malformed_object_inputs_are_named(oracle):
 
 
 @pytest.mark.parametrize("field, value, phrase", [
-    ("points_per_frame", 0, "points_per_frame must be an integer >= 1, got 0"),
+    ("points_per_frame", -1, "points_per_frame must be an integer >= 0, got -1"),
     ("min_pixels", 2.5, "min_pixels must be an integer >= 1"),
     ("scene_near_factor", 1.0, r"scene_near_factor must be a number in \(0, 1\)"),
     ("scene_far_factor", 0.9, "scene_far_factor must be a number >= 1"),
@@ -158,3 +158,20 @@ def test_ignored_pixels_are_never_drawn_for_training(oracle):
 
     ev = TrainingMonitor(Trainer(inp, TrainConfig(eval_pixels=10**6), torch.device("cpu")), None)
     assert len(ev.flat) == len(st.usable) and not torch.any(flat_masks[ev.flat] == I.IGNORE_ID)
+
+
+def test_oracle_density_grows_with_the_frame(tmp_path):
+    """``points_per_frame: 0``: a sixteenth of the frame's pixels, at least 256 (the demo's 64 px
+    keeps 256, gnome-house's 128 px gets 1024); an object smaller than that gives every pixel."""
+    from osn.preprocess.oracle import auto_points_per_frame
+
+    assert [auto_points_per_frame(w, w) for w in (32, 64, 128, 512)] == [256, 256, 1024, 16384]
+    root = tmp_path / "ds"
+    write_synthetic_dataset(root)
+    scene = D.load_scene(root)
+    auto, fixed = oracle_inputs(root), oracle_inputs(root, OracleConfig(points_per_frame=auto_points_per_frame(scene.width, scene.height)))
+    for a, f in zip(auto.objects, fixed.objects):
+        assert [len(d) for d in a.sparse_depth] == [len(d) for d in f.sparse_depth]
+        for t, d in zip(a.frames, a.sparse_depth):
+            covered = int((auto.masks[t] == a.id).sum())
+            assert len(d) == min(covered, auto_points_per_frame(scene.width, scene.height))
