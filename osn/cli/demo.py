@@ -240,7 +240,7 @@ def stage_addon(args: argparse.Namespace, p: DemoPaths) -> dict:
 def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     """Run (or resume) every stage under ``args.work``; returns the stage records."""
     p = DemoPaths(Path(args.work))
-    sfm_downscale(args, _demo_spec(args, args.resolution, args.configs).width)  # a bad --sfm-resolution stops before rendering
+    sfm_factor = sfm_downscale(args, _demo_spec(args, args.resolution, args.configs).width)  # a bad one stops here
     train_cfg = _scaled_config(args.iterations, args.train_config)  # also what the train stage depends on
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
@@ -248,7 +248,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         Stage("generate", f"benchgen: render the {args.preset} benchmark", partial(stage_generate, args, p),
               {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}),
     ]
-    if args.sfm_resolution:
+    if sfm_factor > 1:
         stages.append(Stage("sfm-video", f"benchgen: render the training video at {args.sfm_resolution} px for SfM",
                             partial(stage_sfm_video, args, p), {"preset": args.preset, "sfm_resolution": args.sfm_resolution}))
     stages += [
