@@ -122,7 +122,7 @@ class DemoPaths:
 def _demo_spec(args: argparse.Namespace, resolution: int | None, configs: int | None, test_views: int | None = None):
     """The preset with the demo's overrides (None keeps the preset's value)."""
     spec = load_preset(args.preset)
-    if resolution is None and configs is None and test_views is None:
+    if not (resolution or configs or test_views):
         return spec
     d = spec.to_dict()
     if resolution:

@@ -10,8 +10,8 @@ from typing import Callable
 import numpy as np
 
 from scenecore.cli import UserError, subcommand
-from scenecore.dataset import atomic_write_json
-from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, downscale_inputs, save_inputs
+from scenecore.dataset import atomic_write_json, load_scene
+from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, check_downscale, downscale_inputs, save_inputs
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig, PreprocessReport
 from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
@@ -41,20 +41,28 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     if (src / "scene.json").exists():
         if args.masks:
             raise UserError(f"{src} is a benchgen dataset: its instance masks are used, drop --masks")
+        scene = load_scene(src)
+        _check_downscale(src, scene.width, scene.height, args.downscale)
         inputs, report = preprocess_dataset(src, cfg, progress, work_dir=args.work_dir)
     else:
         inputs, report = _preprocess_frames(src, args, cfg, progress)
-    if args.downscale > 1:
-        try:
-            inputs = downscale_inputs(inputs, args.downscale)
-        except InputsError as e:
-            raise UserError(f"{src}: --downscale {args.downscale}: {e}") from None
+    try:
+        inputs = downscale_inputs(inputs, args.downscale)
+    except InputsError as e:  # an object left without a pixel at the lower resolution
+        raise UserError(f"{src}: --downscale {args.downscale}: {e}") from None
     save_inputs(args.out, inputs)
     atomic_write_json(Path(args.out) / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped,
                                                                  "seconds": time.perf_counter() - t0})
     print("\n".join(report_lines(report.objects)))
     print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _check_downscale(src: Path, width: int, height: int, factor: int) -> None:
+    try:
+        check_downscale(width, height, factor)
+    except InputsError as e:
+        raise UserError(f"{src}: --downscale {factor}: {e}") from None
 
 
 def _preprocess_frames(
@@ -64,6 +72,7 @@ def _preprocess_frames(
     if not args.masks:
         raise UserError(f"{src}: not a benchgen dataset (no scene.json), so --masks MASKS_DIR is required")
     images, masks, names = load_video(src, args.masks)
+    _check_downscale(src, images.shape[2], images.shape[1], args.downscale)  # before SfM, not after
     K = intrinsics_from_args(args.intrinsics, args.fov, images.shape[2], images.shape[1])
     ids = sorted(int(i) for i in np.unique(masks) if i not in (255, IGNORE_ID))
     anchor = args.anchor if args.anchor is not None else max(ids, key=lambda i: int((masks == i).sum()))

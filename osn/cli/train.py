@@ -14,7 +14,7 @@ import logging
 from pathlib import Path
 
 from scenecore.cli import UserError, subcommand
-from scenecore.dataset import load_valid_region
+from scenecore.dataset import load_valid_region, read_json
 from scenecore.validity import ValidRegion
 
 from osn.preprocess.inputs import SceneInputs, load_inputs
@@ -34,8 +34,8 @@ def _refuse_silent_monitor_loss(out: Path) -> None:
     """A run started against a dataset and resumed without it would stop measuring its valid set
     halfway through ``metrics.jsonl``; ask for the dataset instead."""
     try:
-        started = json.loads((out / "run.json").read_text()).get("dataset")
-    except (OSError, ValueError):
+        started = read_json(out / "run.json").get("dataset")
+    except (ValueError, AttributeError):
         return  # no provenance to go by (an older or hand-made run)
     if started:
         raise UserError(f"{out}: this run was started against the dataset {started} (run.json) and measures its valid "

@@ -24,7 +24,7 @@ Conventions:
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -286,6 +286,15 @@ def check_inputs(inputs: SceneInputs, where: str | Path = "inputs") -> None:
         scale_range(inputs.scene_near, inputs.scene_far, o.near, o.far)
 
 
+def check_downscale(width: int, height: int, factor: int) -> None:
+    """Raise ``InputsError`` unless ``width x height`` frames can be averaged down by ``factor``
+    (callers check before SfM, which costs minutes, rather than after it)."""
+    if not isinstance(factor, int) or factor < 1:
+        raise InputsError(f"downscale factor must be a positive integer, got {factor}")
+    if height % factor or width % factor:
+        raise InputsError(f"cannot downscale {width}x{height} frames by {factor}: the size is not a multiple of it")
+
+
 def downscale_inputs(inputs: SceneInputs, factor: int) -> SceneInputs:
     """The same inputs at ``1/factor`` of the resolution: SfM registers small objects only in
     large frames, while the fields train at the resolution they are asked to render.
@@ -297,33 +306,21 @@ def downscale_inputs(inputs: SceneInputs, factor: int) -> SceneInputs:
     boxes stay as they are. Raises ``InputsError`` when the frame size is not a multiple of
     ``factor`` or an object no longer covers any pixel where it has a pose.
     """
-    f = int(factor)
-    if f < 1:
-        raise InputsError(f"downscale factor must be a positive integer, got {factor}")
+    W, H, f = inputs.width, inputs.height, factor
+    check_downscale(W, H, f)
     if f == 1:
         return inputs
-    H, W = inputs.height, inputs.width
-    if H % f or W % f:
-        raise InputsError(f"cannot downscale {W}x{H} frames by {f}: the size is not a multiple of it")
     T, h, w = len(inputs.timestamps), H // f, W // f
-    blocks = inputs.images.reshape(T, h, f, w, f, 3).astype(np.float64)
-    images = np.clip(np.rint(blocks.mean(axis=(2, 4))), 0, 255).astype(np.uint8)
+    images = np.rint(inputs.images.reshape(T, h, f, w, f, 3).mean(axis=(2, 4))).astype(np.uint8)
     mask_blocks = inputs.masks.reshape(T, h, f, w, f).transpose(0, 1, 3, 2, 4).reshape(T, h, w, f * f)
     ids = np.unique(inputs.masks)  # ascending: argmax's first maximum is the smaller id
     counts = np.stack([(mask_blocks == i).sum(axis=-1) for i in ids], axis=-1)
     masks = ids[np.argmax(counts, axis=-1)].astype(inputs.masks.dtype)
     K = np.array(inputs.K, dtype=np.float64, copy=True)
     K[:2, :] /= f
-    objects = [
-        ObjectInputs(id=o.id, name=o.name, frames=o.frames, cam_to_obj=o.cam_to_obj, near=o.near, far=o.far, bbox=o.bbox,
-                     sparse_pix=[np.asarray(p).reshape(-1, 2) // f for p in o.sparse_pix], sparse_depth=o.sparse_depth,
-                     sparse_weight=o.sparse_weight, unit_to_world=o.unit_to_world)
-        for o in inputs.objects
-    ]
-    out = SceneInputs(width=w, height=h, K=K, timestamps=inputs.timestamps, images=images, masks=masks, objects=objects,
-                      anchor=inputs.anchor, scene_near=inputs.scene_near, scene_far=inputs.scene_far,
-                      world_to_anchor=inputs.world_to_anchor, source=inputs.source,
-                      meta={**inputs.meta, "downscaled_from": [W, H], "downscale": f})
+    objects = [replace(o, sparse_pix=[np.asarray(p).reshape(-1, 2) // f for p in o.sparse_pix]) for o in inputs.objects]
+    out = replace(inputs, width=w, height=h, K=K, images=images, masks=masks, objects=objects,
+                  meta={**inputs.meta, "downscaled_from": [W, H], "downscale": f})
     check_inputs(out, f"inputs downscaled {W}x{H} -> {w}x{h}")
     return out
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -125,6 +126,7 @@ def test_frames_directory_and_cli(sfm_scene, tmp_path):
         [sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks), "--fov", str(fov),
          "--out", str(tmp_path / "bad"), "--downscale", "3"], capture_output=True, text=True)
     assert r.returncode == 2 and "not a multiple" in r.stderr and not (tmp_path / "bad").exists()
+    assert "SfM of object" not in r.stdout  # refused before SfM ran, not after
 
 
 def test_downscaled_inputs_match_a_render_at_the_lower_resolution(sfm_scene, tmp_path):
@@ -150,6 +152,18 @@ def test_downscaled_inputs_match_a_render_at_the_lower_resolution(sfm_scene, tmp
         np.testing.assert_array_equal(o.cam_to_obj, high.object(o.id).cam_to_obj)
         assert all(np.all(p < 64) for p in o.sparse_pix)
     assert downscale_inputs(high, 1) is high
+    # The oracle at 128 px keeps 1024 sparse depths per frame (a sixteenth of the pixels), 256 at 64 px.
+    assert max(len(d) for d in high.object(high.anchor).sparse_depth) == 1024
+    assert max(len(d) for d in low.object(low.anchor).sparse_depth) == 256
+    # Each block: the mean colour, and the id covering most of it (a tie goes to the smaller id).
+    a, b = high.anchor, next(o.id for o in high.objects if o.id != high.anchor)
+    edited = dataclasses.replace(high, masks=high.masks.copy())
+    lo, hi = min(a, b), max(a, b)
+    edited.masks[0, :2, :2] = [[lo, hi], [hi, hi]]  # not the top-left pixel's id: the majority's
+    edited.masks[0, :2, 2:4] = [[hi, lo], [lo, hi]]  # a tie: the smaller id, again not the top-left one
+    down2 = downscale_inputs(edited, 2)
+    assert down2.masks[0, 0, 0] == hi and down2.masks[0, 0, 1] == lo
+    np.testing.assert_array_equal(down2.images[0, 0, 0], np.rint(high.images[0, :2, :2].reshape(4, 3).mean(0)))
     with pytest.raises(InputsError, match="not a multiple"):
         downscale_inputs(high, 3)
     with pytest.raises(InputsError, match="covers no mask pixel"):
