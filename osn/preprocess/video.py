@@ -19,6 +19,7 @@ import numpy as np
 from scenecore import dataset as D
 from scenecore.cameras import intrinsics_from_fov
 from osn.preprocess.alignment import align_to_ground_truth
+from osn.preprocess.freespace import occluding_depths
 from osn.preprocess.inputs import (
     IGNORE_ID,
     InputsError,
@@ -74,7 +75,7 @@ def preprocess_video(
                 K, W, H, cfg.box_padding, metres_per_unit=None,
             )
         )
-        report.objects.append(_object_report(oid, name, sfm))
+        report.objects.append(_object_report(oid, name, sfm, K, W, H))
     masks = masks.copy()
     for oid in report.dropped:
         masks[masks == oid] = IGNORE_ID
@@ -92,8 +93,9 @@ def object_work_dir(work_dir: str | Path, object_id: int) -> Path:
     return Path(work_dir) / f"object_{object_id}"
 
 
-def _object_report(oid: int, name: str, sfm: ObjectSfM) -> dict:
-    """The report entry of a registered object (without ground truth)."""
+def _object_report(oid: int, name: str, sfm: ObjectSfM, K: np.ndarray, width: int, height: int) -> dict:
+    """The report entry of a registered object (without ground truth; ``K``, ``width``, ``height``:
+    the frames' camera, for the free-space count)."""
     return {
         "id": oid,
         "name": name,
@@ -106,6 +108,9 @@ def _object_report(oid: int, name: str, sfm: ObjectSfM) -> dict:
         "reprojection_error_px": sfm.reprojection_error_px,
         "restarts": sfm.restarts,
         "repaired_frames": sfm.repaired_frames,
+        # Depths in front of what the other frames saw: phantoms, counted without ground truth.
+        "sparse_depths": int(sum(len(d) for d in sfm.sparse_depth)),
+        "occluding_depths": occluding_depths(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, width, height),
     }
 
 
@@ -118,6 +123,8 @@ def report_lines(objects: list[dict]) -> list[str]:
             continue
         line = (f"  object {r['id']} ({r['name']}): {r['registered_frames']}/{r['candidate_frames']} frames, "
                 f"{r['points']} points, reprojection error {r['reprojection_error_px']:.2f} px")
+        if r.get("sparse_depths"):
+            line += f", {r['occluding_depths']} of {r['sparse_depths']} depths in front of what other frames saw"
         if "rotation_error_deg_max" in r:
             line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
                      f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")

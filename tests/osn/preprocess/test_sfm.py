@@ -44,6 +44,9 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     assert room["registered_fraction"] >= 0.9 and room["rotation_error_deg_max"] <= 1.0, room
     assert room["center_error_m_mean"] <= 0.02, room
     assert 0.0 <= room["sparse_depths_off_10pct"] < 0.5, room  # the report names SfM's phantom depths
+    # ... and, without ground truth, the depths in front of what other frames saw
+    for r in report.objects:
+        assert "error" in r or 0 <= r["occluding_depths"] < 0.5 * r["sparse_depths"], r
     # Small foreground objects (~30 px across at 128 px): registered within a few degrees, or
     # dropped with a message that names the counts and the remedy (never silently wrong).
     for oid in (1, 2):
