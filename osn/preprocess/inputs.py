@@ -58,7 +58,8 @@ class ObjectInputs:
         bbox: ``(2, 3)`` min / max corner of the canonical box holding the object's field.
         sparse_pix: per frame, ``(M, 2)`` int pixel indices ``(u, v)`` with a sparse depth.
         sparse_depth: per frame, ``(M,)`` planar depth in object units.
-        sparse_weight: per frame, ``(M,)`` confidence (1 for the oracle).
+        sparse_weight: per frame, ``(M,)`` confidence (1 for the oracle); stored, not used by
+            training (docs/preprocess.md: SfM's phantoms fit their matches better than good depths).
         unit_to_world: metres per object unit; ground truth known only to the oracle, used for
             evaluation (relative scale error, valid-set IoU), never for training.
     """
