@@ -151,9 +151,6 @@ class Trainer:
     def _randint(self, n: int, size: int) -> torch.Tensor:
         return torch.randint(n, (size,), generator=self.gen).to(self.device)
 
-    def _depth_loss(self, out_depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return sparse_depth_loss(out_depth, target, self.depth_robust)
-
     def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see
         :meth:`SceneTensors.free_pixels`): keeps its field from bleeding past its silhouette,
@@ -203,7 +200,7 @@ class Trainer:
             rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
             out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
             l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
-            l_depth = self._depth_loss(out.depth[n_rgb:], d_gt)
+            l_depth = sparse_depth_loss(out.depth[n_rgb:], d_gt, self.depth_robust)
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
             # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
             # ray shortens) then pushes its surfaces behind the true ones (the room by ~6-10%).
@@ -260,7 +257,7 @@ class Trainer:
         l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
         # Eq. 9 compares with sbar_k * d_gt; dividing by sbar_k keeps the loss's weight
         # independent of the sampled scale (same minimiser).
-        l_depth = self._depth_loss(out.depth[n_rgb:] / s_obj, d_gt) if len(d_gt) else out.depth.sum() * 0.0
+        l_depth = sparse_depth_loss(out.depth[n_rgb:] / s_obj, d_gt, self.depth_robust)  # 0 without depth rays
         lab = st.labels[frames, p]
         seg_ok = lab >= 0
         l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
