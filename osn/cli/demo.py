@@ -30,10 +30,10 @@ from osn.evaluate.report import summary_lines, write_report
 from osn.export.addon_build import build_addon_zip
 from osn.export.from_run import export_run
 from osn.model.run import load_run
-from osn.preprocess.inputs import InputsError, downscale_inputs, load_inputs, save_inputs
+from osn.preprocess.inputs import InputsError, load_inputs, save_inputs
 from osn.preprocess.oracle import oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig
-from osn.preprocess.video import preprocess_dataset
+from osn.preprocess.video import preprocess_dataset, training_inputs
 from osn.sample.configurations import Samples, sample_configurations
 from osn.train import TrainConfig, read_metrics
 
@@ -184,10 +184,10 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
     save_inputs(p.oracle, oracle_inputs(p.dataset, video=video))
     sfm_source = p.sfm_video if factor > 1 else p.dataset
     try:
-        inputs, report = preprocess_dataset(sfm_source, PreprocessConfig(on_failure="skip"),
-                                            progress=lambda m: print(f"  {m} ...", flush=True),
+        cfg = PreprocessConfig(on_failure="skip")
+        inputs, report = preprocess_dataset(sfm_source, cfg, progress=lambda m: print(f"  {m} ...", flush=True),
                                             video=video if factor == 1 else None)
-        inputs = downscale_inputs(inputs, factor)
+        inputs = training_inputs(inputs, factor, cfg)
     except InputsError as e:
         if args.inputs == "colmap":
             raise

@@ -11,10 +11,12 @@ import numpy as np
 
 from scenecore.cli import UserError, subcommand
 from scenecore.dataset import atomic_write_json, load_scene
-from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, check_downscale, downscale_inputs, save_inputs
+from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, check_downscale, save_inputs
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig, PreprocessReport
-from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
+from osn.preprocess.video import (
+    intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines, training_inputs,
+)
 
 
 def _cmd_oracle(args: argparse.Namespace) -> int:
@@ -30,6 +32,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         cfg = PreprocessConfig(
             matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
             max_features=args.max_features, upscale=args.upscale, grey=args.grey,
+            points_per_frame=args.points_per_frame,
         )
     except ValueError as e:
         raise UserError(f"osn preprocess: {e}") from None
@@ -47,7 +50,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     else:
         inputs, report = _preprocess_frames(src, args, cfg, progress)
     try:
-        inputs = downscale_inputs(inputs, args.downscale)
+        inputs = training_inputs(inputs, args.downscale, cfg)
     except InputsError as e:  # an object left without a pixel at the lower resolution
         raise UserError(f"{src}: --downscale {args.downscale}: {e}") from None
     save_inputs(args.out, inputs)
@@ -122,6 +125,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=int, default=1,
                    help="write the inputs (frames, masks, intrinsics) at 1/N of the frames' resolution, after SfM ran on "
                    "the full frames: small objects register only in large frames, the fields train faster on small ones")
+    p.add_argument("--points-per-frame", type=int, default=0,
+                   help="sparse depths kept per object and frame for training, at the written resolution, chosen at "
+                   "random (0: as the oracle, a sixteenth of the frame's pixels, at least 256); near, far and each "
+                   "object's box use all of SfM's depths")
     p.add_argument("--on-failure", choices=["stop", "skip"], default="stop",
                    help="an object that fails to register: stop with its message, or train without it")
-    p.add_argument("--seed", type=int, default=0, help="every pycolmap random seed")
+    p.add_argument("--seed", type=int, default=0,
+                   help="every pycolmap random seed, and the seed of the sparse-depth subsampling")

@@ -26,6 +26,7 @@ from osn.preprocess.inputs import (
     InputsError,
     ObjectInputs,
     SceneInputs,
+    auto_points_per_frame,
     check_inputs,
     object_inputs_from_observations,
     scene_volume,
@@ -101,14 +102,6 @@ def oracle_inputs(
     )
     check_inputs(inputs, root)
     return inputs
-
-
-def auto_points_per_frame(width: int, height: int) -> int:
-    """Sparse depths per object and frame for ``points_per_frame: 0``: a sixteenth of the frame's
-    pixels, at least 256. The valid set learned on gnome-house at 128 px rose from IoU
-    0.878 +- 0.020 with 256 to 0.927 +- 0.015 with 1024 (three seeds; SfM at 512 px gives the room
-    ~2000 per frame); the 64 px demo keeps 256 (1024 there: docs/preprocess.md)."""
-    return max(256, (width * height) // 16)
 
 
 def _oracle_object(

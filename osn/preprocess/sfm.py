@@ -58,6 +58,9 @@ class PreprocessConfig:
         min_matches, init_min_inliers, init_min_tri_angle, abs_pose_min_inliers: mapper
             thresholds, relaxed from COLMAP's megapixel defaults for small object crops.
         scene_near_factor, scene_far_factor, box_padding: as in the oracle (shared normalisation).
+        points_per_frame: sparse depths per object and frame kept for training, at the training
+            resolution (after any downscale), chosen at random with ``seed``; 0 = as the oracle
+            (:func:`osn.preprocess.inputs.auto_points_per_frame`). Near, far and boxes use all.
         seed: every random seed of pycolmap (restart ``k`` of the mapper uses ``seed + k``).
         mapper_restarts: incremental mapping runs on the same matches; the best one is kept
             (:func:`_best_of_restarts` explains why a single run is not enough).
@@ -92,6 +95,7 @@ class PreprocessConfig:
     scene_near_factor: float = SCENE_NEAR_FACTOR
     scene_far_factor: float = SCENE_FAR_FACTOR
     box_padding: float = BOX_PADDING
+    points_per_frame: int = 0
     seed: int = 0
     mapper_restarts: int = 4
     min_epipolar_consistency: float = 0.2
@@ -123,6 +127,7 @@ PREPROCESS_RULES = {
     "init_min_tri_angle": number(0.0),
     "abs_pose_min_inliers": integer(0),
     **NORMALISATION_RULES,
+    "points_per_frame": integer(0),
     "seed": integer(0),
     "mapper_restarts": integer(0),  # 0 runs the mapper once, like 1
     "min_epipolar_consistency": number(0.0, 1.0, hi_open=True),

@@ -26,8 +26,10 @@ from osn.preprocess.inputs import (
     ObjectInputs,
     SceneInputs,
     check_inputs,
+    downscale_inputs,
     object_inputs_from_observations,
     scene_volume,
+    subsample_sparse_depths,
 )
 from osn.preprocess.sfm import ObjectRegistrationError, ObjectSfM, PreprocessConfig, PreprocessReport, reconstruct_object
 
@@ -86,6 +88,13 @@ def preprocess_video(
         meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
     )
     return inputs, report
+
+
+def training_inputs(inputs: SceneInputs, factor: int, cfg: PreprocessConfig) -> SceneInputs:
+    """SfM's inputs as training gets them: averaged down by ``factor``
+    (:func:`~osn.preprocess.inputs.downscale_inputs`), then at most ``cfg.points_per_frame``
+    sparse depths per object and frame (:func:`~osn.preprocess.inputs.subsample_sparse_depths`)."""
+    return subsample_sparse_depths(downscale_inputs(inputs, factor), cfg.points_per_frame, cfg.seed)
 
 
 def object_work_dir(work_dir: str | Path, object_id: int) -> Path:

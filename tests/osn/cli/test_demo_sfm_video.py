@@ -38,6 +38,9 @@ def test_sfm_runs_on_the_larger_video_and_trains_on_the_benchmark_frames(tmp_pat
     assert room["registered_fraction"] == 1.0 and room["rotation_error_deg_max"] < 1.0, room
     assert (sfm.width, sfm.height) == (oracle.width, oracle.height) == (32, 32)
     assert sfm.meta["downscaled_from"] == [128, 128] and sfm.source == "colmap"
+    # As many sparse depths per frame as the oracle's at most (field steps share depth rays by count).
+    assert sfm.meta["sparse_depths_per_frame"] == 256
+    assert max(len(d) for o in sfm.objects for d in o.sparse_depth) <= 256
     np.testing.assert_allclose(sfm.K, oracle.K, atol=1e-9)
     assert sfm.world_to_anchor is not None  # test views of the 32 px benchmark reach the anchor's frame
 

@@ -163,7 +163,7 @@ def test_ignored_pixels_are_never_drawn_for_training(oracle):
 def test_oracle_density_grows_with_the_frame(tmp_path):
     """``points_per_frame: 0``: a sixteenth of the frame's pixels, at least 256 (the demo's 64 px
     keeps 256, gnome-house's 128 px gets 1024); an object smaller than that gives every pixel."""
-    from osn.preprocess.oracle import auto_points_per_frame
+    from osn.preprocess.inputs import auto_points_per_frame
 
     assert [auto_points_per_frame(w, w) for w in (32, 64, 128, 512)] == [256, 256, 1024, 16384]
     root = tmp_path / "ds"
@@ -175,3 +175,34 @@ def test_oracle_density_grows_with_the_frame(tmp_path):
         for t, d in zip(a.frames, a.sparse_depth):
             covered = int((auto.masks[t] == a.id).sum())
             assert len(d) == min(covered, auto_points_per_frame(scene.width, scene.height))
+
+
+def test_subsampling_caps_each_frame_with_a_subset_and_keeps_the_geometry(oracle):
+    """At most ``per_frame`` depths per object and frame, each one of the originals (pixel,
+    depth and weight together), the same for the same seed; poses, ranges and boxes untouched."""
+    _, _, inp = oracle  # 40 depths per frame
+    o0 = inp.objects[0]  # a frame below the cap keeps its depths (SfM's counts vary by frame)
+    for field in (o0.sparse_pix, o0.sparse_depth, o0.sparse_weight):
+        field[0] = field[0][:10]
+    counts = [[len(d) for d in o.sparse_depth] for o in inp.objects]
+    assert max(max(c) for c in counts) == 40 and min(min(c) for c in counts) == 10
+    out = I.subsample_sparse_depths(inp, 25, seed=3)
+    assert out.meta["sparse_depths_per_frame"] == 25
+    for o, c in zip(out.objects, counts):
+        src = inp.object(o.id)
+        assert [len(d) for d in o.sparse_depth] == [min(n, 25) for n in c]
+        for p, d, w, sp, sd, sw in zip(o.sparse_pix, o.sparse_depth, o.sparse_weight,
+                                       src.sparse_pix, src.sparse_depth, src.sparse_weight):
+            rows = {(int(u), int(v), float(z), float(x)) for (u, v), z, x in zip(sp, sd, sw)}
+            assert {(int(u), int(v), float(z), float(x)) for (u, v), z, x in zip(p, d, w)} <= rows
+        np.testing.assert_array_equal(o.cam_to_obj, src.cam_to_obj)
+        np.testing.assert_array_equal(o.bbox, src.bbox)
+        assert (o.near, o.far) == (src.near, src.far)
+    again, other = I.subsample_sparse_depths(inp, 25, seed=3), I.subsample_sparse_depths(inp, 25, seed=4)
+    assert all(np.array_equal(a, b) for o, g in zip(out.objects, again.objects) for a, b in zip(o.sparse_depth, g.sparse_depth))
+    assert not all(np.array_equal(a, b) for o, g in zip(out.objects, other.objects) for a, b in zip(o.sparse_depth, g.sparse_depth))
+    # 0: the oracle's automatic count (256 here, above every frame's 40): nothing is dropped.
+    auto = I.subsample_sparse_depths(inp)
+    assert auto.meta["sparse_depths_per_frame"] == 256 and [[len(d) for d in o.sparse_depth] for o in auto.objects] == counts
+    with pytest.raises(I.InputsError, match="must be >= 0"):
+        I.subsample_sparse_depths(inp, -1)

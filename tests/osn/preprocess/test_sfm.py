@@ -126,14 +126,16 @@ def test_frames_directory_and_cli(sfm_scene, tmp_path):
     out = tmp_path / "inputs"
     r = subprocess.run(
         [sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks), "--fov", str(fov),
-         "--on-failure", "skip", "--out", str(out), "--downscale", "2"],
+         "--on-failure", "skip", "--out", str(out), "--downscale", "2", "--points-per-frame", "30"],
         capture_output=True, text=True,
     )
     assert r.returncode == 0, r.stderr
     inputs = load_inputs(out)
     assert inputs.anchor == 0 and inputs.world_to_anchor is None and inputs.object(0).frames.size == 8
-    # SfM ran on the 128 px frames; the fields get them at 64 px.
+    # SfM ran on the 128 px frames; the fields get them at 64 px, with 30 of the room's depths per frame.
     assert (inputs.width, inputs.height) == (64, 64) and inputs.meta["downscaled_from"] == [128, 128]
+    assert inputs.meta["sparse_depths_per_frame"] == 30
+    assert {len(d) for d in inputs.object(0).sparse_depth} == {30}  # SfM gave the room more in every frame
     r = subprocess.run(
         [sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks), "--fov", str(fov),
          "--out", str(tmp_path / "bad"), "--downscale", "3"], capture_output=True, text=True)
@@ -281,6 +283,8 @@ def test_config_rejects_bad_values():
         PreprocessConfig(final_cauchy_px=float("inf"))
     with pytest.raises(ValueError, match="min_epipolar_consistency"):
         PreprocessConfig(min_epipolar_consistency=1.0)
+    with pytest.raises(ValueError, match="points_per_frame"):
+        PreprocessConfig(points_per_frame=-1)
 
 
 def test_isoluminant_object_registers_on_its_colour_axis(sfm_scene):
