@@ -57,7 +57,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     atomic_write_json(Path(args.out) / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped,
                                                                  "seconds": time.perf_counter() - t0})
     print("\n".join(report_lines(report.objects)))
-    print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s")
+    print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s "
+          f"(at most {inputs.meta['sparse_depths_per_frame']} sparse depths per object and frame)")
     return 0
 
 

@@ -326,7 +326,6 @@ def downscale_inputs(inputs: SceneInputs, factor: int) -> SceneInputs:
     return out
 
 
-
 def auto_points_per_frame(width: int, height: int) -> int:
     """Sparse depths per object and frame that training gets by default (``points_per_frame: 0``
     of the oracle and of SfM): a sixteenth of the frame's pixels, at least 256. The valid set
@@ -341,8 +340,8 @@ def subsample_sparse_depths(inputs: SceneInputs, per_frame: int = 0, seed: int =
 
     Field steps draw their depth rays from all objects' depths at once, so an object's share of
     the depth supervision is its share of the depths. SfM gives a textured room ~2000 per 64 px
-    frame and a small object ~200 (the oracle: at most 256 each); capping them as the oracle's
-    are raised the SfM demo's valid-set IoU from 0.806 +- 0.029 to 0.842 +- 0.020
+    frame and a small object ~200 (the oracle: at most 256 each); capping SfM's at the oracle's
+    count raised the SfM demo's valid-set IoU from 0.806 +- 0.029 to 0.842 +- 0.020
     (docs/preprocess.md). Poses, ranges and boxes are kept: they were set from every depth.
     One generator over the objects in order; a frame with fewer depths keeps them all.
     """
