@@ -32,7 +32,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         cfg = PreprocessConfig(
             matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
             max_features=args.max_features, upscale=args.upscale, grey=args.grey,
-            points_per_frame=args.points_per_frame,
+            points_per_frame=args.points_per_frame, drop_occluding=args.drop_occluding,
         )
     except ValueError as e:
         raise UserError(f"osn preprocess: {e}") from None
@@ -126,6 +126,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=int, default=1,
                    help="write the inputs (frames, masks, intrinsics) at 1/N of the frames' resolution, after SfM ran on "
                    "the full frames: small objects register only in large frames, the fields train faster on small ones")
+    p.add_argument("--drop-occluding", choices=["objects", "all", "none"], default="objects",
+                   help="drop the sparse depths that lie in front of what the object's other frames saw (SfM's "
+                   "phantoms, found without ground truth) before normalising: of every object but the anchor, of all, "
+                   "or of none")
     p.add_argument("--points-per-frame", type=int, default=0,
                    help="sparse depths kept per object and frame for training, at the written resolution, chosen at "
                    "random (0: as the oracle, a sixteenth of the frame's pixels, at least 256); near, far and each "

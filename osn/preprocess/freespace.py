@@ -9,8 +9,9 @@ test them (:func:`occluding_depths`, ``occluding_depths`` in ``preprocess_report
 only phantom figure a video without ground truth has. On that gnome-house video it flags 14.5%
 of the room's depths (ground truth: 22.1% are more than 10% off) and 2.1% of the sofa's (3.4%),
 and of the room's gross phantoms (below half the true depth) 2714 of 2942, against 2 of its
-24046 good depths. Dropping them before training was tried and not kept (docs/preprocess.md:
-the valid set came out worse).
+24046 good depths. ``osn preprocess`` drops the flagged depths of every object but the anchor
+before normalising it (``drop_occluding: objects``): the sofa's 1.4% phantoms had set its near
+plane and box; dropping the room's as well made the valid set worse (docs/preprocess.md).
 
 Pure numpy on one object's observations in its own frame and unit; nothing here reads ground truth.
 """
@@ -103,11 +104,18 @@ def _cell_medians(pix: np.ndarray, dep: np.ndarray, cell: int, gh: int, gw: int)
     return out
 
 
+def occluding_flags(
+    cam_to_obj: np.ndarray, sparse_pix: list[np.ndarray], sparse_depth: list[np.ndarray], K: np.ndarray, width: int,
+    height: int, margin: float = MARGIN, vote: float = VOTE,
+) -> list[np.ndarray]:
+    """Per frame ``(M,)`` bool: the sparse depths that lie more than ``margin`` in front of what the
+    other frames saw in at least a share ``vote`` of those that could test them (:func:`occluding_share`)."""
+    return [s >= vote for s in occluding_share(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)]
+
+
 def occluding_depths(
     cam_to_obj: np.ndarray, sparse_pix: list[np.ndarray], sparse_depth: list[np.ndarray], K: np.ndarray, width: int,
     height: int, margin: float = MARGIN, vote: float = VOTE,
 ) -> int:
-    """How many sparse depths lie more than ``margin`` in front of what the other frames saw in
-    at least a share ``vote`` of those that could test them (:func:`occluding_share`)."""
-    shares = occluding_share(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)
-    return int(sum((s >= vote).sum() for s in shares))
+    """How many sparse depths :func:`occluding_flags` flags."""
+    return int(sum(f.sum() for f in occluding_flags(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin, vote)))

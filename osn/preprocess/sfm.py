@@ -58,6 +58,11 @@ class PreprocessConfig:
         min_matches, init_min_inliers, init_min_tri_angle, abs_pose_min_inliers: mapper
             thresholds, relaxed from COLMAP's megapixel defaults for small object crops.
         scene_near_factor, scene_far_factor, box_padding: as in the oracle (shared normalisation).
+        drop_occluding: whose sparse depths :func:`osn.preprocess.freespace.occluding_flags`
+            flags are dropped before normalising: ``objects`` (every object but the anchor),
+            ``all`` or ``none``. SfM's phantoms on the sofa (1.4% of its depths at under 0.6 of the
+            true depth) set its near plane and box; the room's hold its scale box (Eq. 1)
+            where training wants it (docs/preprocess.md measures the three).
         points_per_frame: sparse depths per object and frame kept for training, at the training
             resolution (after any downscale), chosen at random with ``seed``; 0 = as the oracle
             (:func:`osn.preprocess.inputs.auto_points_per_frame`). Near, far and boxes use all.
@@ -95,6 +100,7 @@ class PreprocessConfig:
     scene_near_factor: float = SCENE_NEAR_FACTOR
     scene_far_factor: float = SCENE_FAR_FACTOR
     box_padding: float = BOX_PADDING
+    drop_occluding: str = "objects"
     points_per_frame: int = 0
     seed: int = 0
     mapper_restarts: int = 4
@@ -127,6 +133,7 @@ PREPROCESS_RULES = {
     "init_min_tri_angle": number(0.0),
     "abs_pose_min_inliers": integer(0),
     **NORMALISATION_RULES,
+    "drop_occluding": choice("objects", "all", "none"),
     "points_per_frame": integer(0),
     "seed": integer(0),
     "mapper_restarts": integer(0),  # 0 runs the mapper once, like 1

@@ -19,7 +19,7 @@ import numpy as np
 from scenecore import dataset as D
 from scenecore.cameras import intrinsics_from_fov
 from osn.preprocess.alignment import align_to_ground_truth
-from osn.preprocess.freespace import occluding_depths
+from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import (
     IGNORE_ID,
     InputsError,
@@ -71,13 +71,17 @@ def preprocess_video(
             report.dropped.append(oid)
             report.objects.append({"id": oid, "name": name, "error": str(e)})
             continue
+        flags = occluding_flags(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, W, H)
+        drop = cfg.drop_occluding == "all" or (cfg.drop_occluding == "objects" and oid != anchor)
+        keep = [~f if drop else np.ones(len(f), dtype=bool) for f in flags]
         objects.append(
             object_inputs_from_observations(
-                oid, name, sfm.frames, sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight,
+                oid, name, sfm.frames, sfm.cam_to_obj, *([x[k] for x, k in zip(xs, keep)] for xs in
+                                                       (sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight)),
                 K, W, H, cfg.box_padding, metres_per_unit=None,
             )
         )
-        report.objects.append(_object_report(oid, name, sfm, K, W, H))
+        report.objects.append(_object_report(oid, name, sfm, flags, drop))
     masks = masks.copy()
     for oid in report.dropped:
         masks[masks == oid] = IGNORE_ID
@@ -102,9 +106,9 @@ def object_work_dir(work_dir: str | Path, object_id: int) -> Path:
     return Path(work_dir) / f"object_{object_id}"
 
 
-def _object_report(oid: int, name: str, sfm: ObjectSfM, K: np.ndarray, width: int, height: int) -> dict:
-    """The report entry of a registered object (without ground truth; ``K``, ``width``, ``height``:
-    the frames' camera, for the free-space count)."""
+def _object_report(oid: int, name: str, sfm: ObjectSfM, flags: list[np.ndarray], dropped: bool) -> dict:
+    """The report entry of a registered object (without ground truth; ``flags``: per frame the
+    depths :func:`~osn.preprocess.freespace.occluding_flags` flags, ``dropped``: whether they were dropped)."""
     return {
         "id": oid,
         "name": name,
@@ -119,7 +123,8 @@ def _object_report(oid: int, name: str, sfm: ObjectSfM, K: np.ndarray, width: in
         "repaired_frames": sfm.repaired_frames,
         # Depths in front of what the other frames saw: phantoms, counted without ground truth.
         "sparse_depths": int(sum(len(d) for d in sfm.sparse_depth)),
-        "occluding_depths": occluding_depths(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, width, height),
+        "occluding_depths": int(sum(f.sum() for f in flags)),
+        "occluding_dropped": dropped,
     }
 
 
@@ -134,6 +139,7 @@ def report_lines(objects: list[dict]) -> list[str]:
                 f"{r['points']} points, reprojection error {r['reprojection_error_px']:.2f} px")
         if r.get("sparse_depths"):
             line += f", {r['occluding_depths']} of {r['sparse_depths']} depths in front of what other frames saw"
+            line += " (dropped)" if r.get("occluding_dropped") else ""
         if "rotation_error_deg_max" in r:
             line += (f", registered {100 * r['registered_fraction']:.0f}% of visible frames, rotation error "
                      f"max {r['rotation_error_deg_max']:.3f} deg, centre error mean {r['center_error_m_mean']:.4f} m")

@@ -13,7 +13,7 @@ import pytest
 from benchgen.render.generate import generate
 from benchgen.scene.spec import load_preset, spec_from_dict
 from osn.preprocess import alignment
-from osn.preprocess.freespace import occluding_depths
+from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import IGNORE_ID, InputsError, load_inputs
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.preprocess.sfm import LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, principal_grey, reconstruct_object
@@ -48,14 +48,20 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     # ... and, without ground truth, the depths in front of what other frames saw
     for r in report.objects:
         assert "error" in r or 0 <= r["occluding_depths"] < 0.5 * r["sparse_depths"], r
-    # The count is taken on each object's own frames, camera and depths: the same on the saved
-    # inputs (normalised: a rigid motion and one unit, which change no share).
-    for o in inputs.objects:
-        r = by_id[o.id]
+    # The count is taken on each object's own frames, camera and depths: the same on inputs that
+    # keep every depth (normalised: a rigid motion and one unit, which change no share). By default
+    # every object but the anchor loses exactly the flagged depths, frame by frame.
+    kept_all, _ = preprocess_dataset(sfm_scene, PreprocessConfig(on_failure="skip", drop_occluding="none"))
+    for o in kept_all.objects:
+        r, kept = by_id[o.id], inputs.object(o.id)
+        flags = occluding_flags(o.cam_to_obj, o.sparse_pix, o.sparse_depth, kept_all.K, kept_all.width, kept_all.height)
         assert r["sparse_depths"] == sum(len(d) for d in o.sparse_depth), r
-        assert r["occluding_depths"] == occluding_depths(o.cam_to_obj, o.sparse_pix, o.sparse_depth, inputs.K,
-                                                         inputs.width, inputs.height), r
-    assert sum(by_id[o.id]["occluding_depths"] for o in inputs.objects) > 0  # the tiny scene's SfM has phantoms too
+        assert r["occluding_depths"] == sum(int(f.sum()) for f in flags), r
+        assert r["occluding_dropped"] == (o.id != inputs.anchor), r
+        expected = [len(d) - int(f.sum()) if o.id != inputs.anchor else len(d) for d, f in zip(o.sparse_depth, flags)]
+        assert [len(d) for d in kept.sparse_depth] == expected, r
+    # The tiny scene's SfM has phantoms too, in the room (81) and in the block (3, dropped).
+    assert by_id[0]["occluding_depths"] > 0 and sum(by_id[o.id]["occluding_depths"] for o in inputs.objects if o.id != 0) > 0
     # Small foreground objects (~30 px across at 128 px): registered within a few degrees, or
     # dropped with a message that names the counts and the remedy (never silently wrong).
     for oid in (1, 2):
