@@ -61,8 +61,8 @@ class PreprocessConfig:
         drop_occluding: whose sparse depths :func:`osn.preprocess.freespace.occluding_flags`
             flags are dropped before normalising: ``objects`` (every object but the anchor),
             ``all`` or ``none``. SfM's phantoms on the sofa (1.4% of its depths at under 0.6 of the
-            true depth) set its near plane and box; the room's hold its scale box (Eq. 1)
-            where training wants it (docs/preprocess.md measures the three).
+            true depth) set its near plane and box; dropping the room's too (the anchor, whose near
+            plane sets Eq. 1's scene volume) made the valid set worse (docs/preprocess.md).
         points_per_frame: sparse depths per object and frame kept for training, at the training
             resolution (after any downscale), chosen at random with ``seed``; 0 = as the oracle
             (:func:`osn.preprocess.inputs.auto_points_per_frame`). Near, far and boxes use all.
