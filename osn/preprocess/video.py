@@ -74,12 +74,10 @@ def preprocess_video(
         flags = occluding_flags(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, W, H)
         drop = cfg.drop_occluding == "all" or (cfg.drop_occluding == "objects" and oid != anchor)
         keep = [~f if drop else np.ones(len(f), dtype=bool) for f in flags]
+        pix, dep, wt = ([x[k] for x, k in zip(xs, keep)] for xs in (sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight))
         objects.append(
-            object_inputs_from_observations(
-                oid, name, sfm.frames, sfm.cam_to_obj, *([x[k] for x, k in zip(xs, keep)] for xs in
-                                                       (sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight)),
-                K, W, H, cfg.box_padding, metres_per_unit=None,
-            )
+            object_inputs_from_observations(oid, name, sfm.frames, sfm.cam_to_obj, pix, dep, wt, K, W, H,
+                                            cfg.box_padding, metres_per_unit=None)
         )
         report.objects.append(_object_report(oid, name, sfm, flags, drop))
     masks = masks.copy()
