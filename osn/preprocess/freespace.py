@@ -5,7 +5,7 @@ the room's depths lie on a phantom floor at 0.5-0.6 of the true depth). Such a p
 frames it was matched in, but projected into the object's other frames it lands *in front of*
 the depths those frames observed there: were it real, it would hide what SfM saw. ``osn
 preprocess`` reports per object how many depths do so in at least half of the frames that can
-test them (:func:`occluding_depths`, ``occluding_depths`` in ``preprocess_report.json``): the
+test them (:func:`occluding_flags`, ``occluding_depths`` in ``preprocess_report.json``): the
 only phantom figure a video without ground truth has. On that gnome-house video it flags 14.5%
 of the room's depths (ground truth: 22.1% are more than 10% off) and 2.1% of the sofa's (3.4%),
 and of the room's gross phantoms (below half the true depth) 2714 of 2942, against 2 of its
@@ -23,7 +23,7 @@ import numpy as np
 from scenecore.cameras import invert_pose, pixel_rays
 
 #: Relative depth by which a point must lie in front of a frame's observed depths, and the share
-#: of the testing frames that must see it so, for :func:`occluding_depths`.
+#: of the testing frames that must see it so, for :func:`occluding_flags`.
 MARGIN = 0.15
 VOTE = 0.5
 
@@ -112,10 +112,3 @@ def occluding_flags(
     other frames saw in at least a share ``vote`` of those that could test them (:func:`occluding_share`)."""
     return [s >= vote for s in occluding_share(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)]
 
-
-def occluding_depths(
-    cam_to_obj: np.ndarray, sparse_pix: list[np.ndarray], sparse_depth: list[np.ndarray], K: np.ndarray, width: int,
-    height: int, margin: float = MARGIN, vote: float = VOTE,
-) -> int:
-    """How many sparse depths :func:`occluding_flags` flags."""
-    return int(sum(f.sum() for f in occluding_flags(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin, vote)))

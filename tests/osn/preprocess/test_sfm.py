@@ -58,8 +58,9 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         assert r["sparse_depths"] == sum(len(d) for d in o.sparse_depth), r
         assert r["occluding_depths"] == sum(int(f.sum()) for f in flags), r
         assert r["occluding_dropped"] == (o.id != inputs.anchor), r
-        expected = [len(d) - int(f.sum()) if o.id != inputs.anchor else len(d) for d, f in zip(o.sparse_depth, flags)]
-        assert [len(d) for d in kept.sparse_depth] == expected, r
+        expected = [p[~f] if o.id != inputs.anchor else p for p, f in zip(o.sparse_pix, flags)]
+        assert all(np.array_equal(a, b) for a, b in zip(kept.sparse_pix, expected)), r  # pixels: not renormalised
+        assert [len(d) for d in kept.sparse_depth] == [len(p) for p in expected], r
     # The tiny scene's SfM has phantoms too, in the room (81) and in the block (3, dropped).
     assert by_id[0]["occluding_depths"] > 0 and sum(by_id[o.id]["occluding_depths"] for o in inputs.objects if o.id != 0) > 0
     # Small foreground objects (~30 px across at 128 px): registered within a few degrees, or
@@ -449,11 +450,15 @@ def test_report_lines_name_dropped_objects_and_repaired_frames():
         {"id": 0, "name": "room", "registered_frames": 15, "candidate_frames": 15, "points": 16559,
          "reprojection_error_px": 0.355, "repaired_frames": [
              {"frame": "00014", "action": "re-posed", "consistency": 0.0155, "consistency_after": 0.590}]},
+        {"id": 2, "name": "sofa", "registered_frames": 15, "candidate_frames": 15, "points": 2521,
+         "reprojection_error_px": 0.356, "sparse_depths": 16205, "occluding_depths": 344, "occluding_dropped": True},
         {"id": 3, "name": "ring-toy", "error": "object 3 (ring-toy): registered 2 of 15 frames"},
     ]
     assert report_lines(objects) == [
         "  object 0 (room): 15/15 frames, 16559 points, reprojection error 0.35 px",
         "    frame 00014: re-posed (1.6% of its verified matches fit SfM's pose, 59.0% after)",
+        "  object 2 (sofa): 15/15 frames, 2521 points, reprojection error 0.36 px, 344 of 16205 depths in front of "
+        "what other frames saw (dropped)",
         "  object 3 (ring-toy): DROPPED: object 3 (ring-toy): registered 2 of 15 frames",
     ]
 
