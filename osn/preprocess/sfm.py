@@ -180,17 +180,27 @@ class PreprocessReport:
 
 
 def _upscale(image: np.ndarray, factor: int, order: int = 3) -> np.ndarray:
-    """Upsampling by an integer factor (bicubic for images, ``order=0`` for masks).
+    """``(H, W[, C]) uint8`` upsampled by an integer factor: cubic spline for images, nearest
+    (``order=0``) for masks; pixel centres map as in ``skimage.transform.resize``.
 
     SIFT finds few features on objects of ~30 pixels; a blocky (nearest) image gives fewer still.
+    The result equals ``resize(image, ..., order=order, preserve_range=True, anti_aliasing=False)``
+    rounded to uint8 bit for bit (tested), 5x faster: that resize runs its spline along the colour
+    axis too, which cost 5 s per 1024 px frame, about half of a small object's SfM.
     """
     if factor == 1:
         return image
-    from skimage.transform import resize
+    if order == 0:  # each input pixel becomes a factor x factor block: nearest under that mapping
+        return image.repeat(factor, 0).repeat(factor, 1)
+    from scipy.ndimage import zoom
 
-    h, w = image.shape[:2]
-    out = resize(image, (h * factor, w * factor) + image.shape[2:], order=order, preserve_range=True, anti_aliasing=False)
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    chans = image[..., None] if image.ndim == 2 else image
+    # skimage's "reflect" is ndimage's "mirror"; it clips to the input's range before we round.
+    out = np.stack([zoom(chans[..., c].astype(np.float64), factor, order=order, mode="mirror", grid_mode=True)
+                    for c in range(chans.shape[-1])], -1)
+    out = np.clip(out, float(image.min()), float(image.max()))
+    out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    return out[..., 0] if image.ndim == 2 else out
 
 
 def _erode(mask: np.ndarray, r: int) -> np.ndarray:

@@ -16,7 +16,9 @@ from osn.preprocess import alignment
 from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import IGNORE_ID, InputsError, load_inputs
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
-from osn.preprocess.sfm import LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, principal_grey, reconstruct_object
+from osn.preprocess.sfm import (
+    LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, _upscale, principal_grey, reconstruct_object,
+)
 from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
 from osn.evaluate.units import ground_truth_problem
 
@@ -277,6 +279,26 @@ def test_principal_grey_keeps_texture_that_luminance_loses():
     inner[:, :4] = False
     g = principal_grey(noisy, inner, "principal")
     assert set(np.unique(g[inner & pattern])) == {255} and set(np.unique(g[inner & ~pattern])) == {0}
+
+
+def test_upscale_equals_skimage_resize_bit_for_bit():
+    """The frames SIFT sees are skimage's cubic resize rounded to uint8, masks its nearest one;
+    the per-channel spline only makes it faster (SfM's results were measured with skimage's)."""
+    from skimage.transform import resize
+
+    rng = np.random.default_rng(3)
+    smooth = np.cumsum(rng.integers(-9, 10, (37, 29, 3)), 0).clip(0, 255).astype(np.uint8)  # edges and flats
+    steps = np.where(rng.random((37, 29, 3)) > 0.5, 190, 60).astype(np.uint8)  # the spline overshoots its range
+    for image in (rng.integers(0, 256, (37, 29, 3), dtype=np.uint8), smooth, smooth[..., 1], smooth[..., :1], steps):
+        for factor in (2, 3):
+            want = resize(image, (image.shape[0] * factor, image.shape[1] * factor) + image.shape[2:], order=3,
+                          preserve_range=True, anti_aliasing=False)
+            got = _upscale(image, factor)
+            assert got.dtype == np.uint8 and np.array_equal(got, np.clip(np.rint(want), 0, 255).astype(np.uint8))
+    mask = (rng.random((37, 29)) > 0.5).astype(np.uint8) * 255
+    want = resize(mask, (74, 58), order=0, preserve_range=True, anti_aliasing=False).astype(np.uint8)
+    assert np.array_equal(_upscale(mask, 2, order=0), want)
+    assert _upscale(mask, 1) is mask
 
 
 def test_config_rejects_bad_values():
