@@ -31,7 +31,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     try:
         cfg = PreprocessConfig(
             matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
-            max_features=args.max_features, upscale=args.upscale, grey=args.grey,
+            max_features=args.max_features, upscale=args.upscale, anchor_downscale=args.anchor_downscale,
+            crop_margin=args.crop_margin, grey=args.grey,
             points_per_frame=args.points_per_frame, drop_occluding=args.drop_occluding,
         )
     except ValueError as e:
@@ -120,6 +121,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-features", type=int, default=4096, help="SIFT features per frame and object")
     p.add_argument("--upscale", type=int, default=2,
                    help="upsample frames by this integer factor before SIFT (objects under ~100 px need 2)")
+    p.add_argument("--anchor-downscale", type=int, default=1,
+                   help="SfM of the anchor (background), which fills the frame, on frames averaged down by this "
+                   "factor (it needs fewer pixels than small objects; at 1024 px upsampled it costs 4x those of 512)")
+    p.add_argument("--crop-margin", type=int, default=PreprocessConfig.crop_margin,
+                   help="SIFT sees the frames cropped to the box of the object's masks over the video, grown by this "
+                   "many pixels (-1: whole frames); SIFT costs every pixel it is given")
     p.add_argument("--grey", choices=["auto", "luminance", "principal"], default="auto",
                    help="grey image SIFT sees: luminance, the object's principal colour axis, or auto "
                    "(principal only for objects whose colours differ mostly in hue, e.g. red on blue)")

@@ -311,19 +311,31 @@ def downscale_inputs(inputs: SceneInputs, factor: int) -> SceneInputs:
     check_downscale(W, H, f)
     if f == 1:
         return inputs
-    T, h, w = len(inputs.timestamps), H // f, W // f
-    images = np.rint(inputs.images.reshape(T, h, f, w, f, 3).mean(axis=(2, 4))).astype(np.uint8)
-    mask_blocks = inputs.masks.reshape(T, h, f, w, f).transpose(0, 1, 3, 2, 4).reshape(T, h, w, f * f)
-    ids = np.unique(inputs.masks)  # ascending: argmax's first maximum is the smaller id
-    counts = np.stack([(mask_blocks == i).sum(axis=-1) for i in ids], axis=-1)
-    masks = ids[np.argmax(counts, axis=-1)].astype(inputs.masks.dtype)
-    K = np.array(inputs.K, dtype=np.float64, copy=True)
-    K[:2, :] /= f
+    h, w = H // f, W // f
+    images, masks, K = downscale_video(inputs.images, inputs.masks, inputs.K, f)
     objects = [replace(o, sparse_pix=[np.asarray(p).reshape(-1, 2) // f for p in o.sparse_pix]) for o in inputs.objects]
     out = replace(inputs, width=w, height=h, K=K, images=images, masks=masks, objects=objects,
                   meta={**inputs.meta, "downscaled_from": [W, H], "downscale": f})
     check_inputs(out, f"inputs downscaled {W}x{H} -> {w}x{h}")
     return out
+
+
+def downscale_video(images: np.ndarray, masks: np.ndarray, K: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``images (T, H, W, 3)``, ``masks (T, H, W)`` and pixel intrinsics ``K`` at ``1/factor``
+    of the resolution, as :func:`downscale_inputs` takes them (block means, majority ids);
+    ``InputsError`` when the frame size is not a multiple of ``factor``."""
+    T, H, W = masks.shape
+    f = factor
+    check_downscale(W, H, f)
+    h, w = H // f, W // f
+    small = np.rint(images.reshape(T, h, f, w, f, 3).mean(axis=(2, 4))).astype(np.uint8)
+    mask_blocks = masks.reshape(T, h, f, w, f).transpose(0, 1, 3, 2, 4).reshape(T, h, w, f * f)
+    ids = np.unique(masks)  # ascending: argmax's first maximum is the smaller id
+    counts = np.stack([(mask_blocks == i).sum(axis=-1) for i in ids], axis=-1)
+    small_masks = ids[np.argmax(counts, axis=-1)].astype(masks.dtype)
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[:2, :] /= f
+    return small, small_masks, K
 
 
 def auto_points_per_frame(width: int, height: int) -> int:

@@ -41,6 +41,18 @@ class PreprocessConfig:
         max_features: SIFT features per image and object.
         peak_threshold: SIFT peak threshold (lower finds more features on small images).
         upscale: integer upsampling of frames before SIFT (small objects need it).
+        anchor_downscale: SfM of the anchor (background), which fills the frame, on frames
+            averaged down by this factor (its sparse pixels mapped back to the blocks' centres);
+            1 = full frames. Small objects need large frames, the anchor does not: gnome-house's
+            room at 1024 px, upsampled like the objects, is 4x the pixels of 512 px. Which room
+            SfM trains the best valid set is not settled (docs/preprocess.md, "SfM at 1024 px").
+        crop_margin: SIFT sees the frames cropped to the box of the object's masks over the video,
+            grown by this many pixels and to hold the principal point (-1: whole frames). SIFT
+            runs on every pixel it is given, however little of it the mask keeps: a small
+            object's whole frames at 1024 px, upsampled, cost 53 s of SIFT for 15 frames, most of
+            it outside the object. It changes which features SIFT finds near the crop's border
+            (gnome-house at 512 px: the ring-toy's worst frame 5.0 degrees instead of 3.0), so it
+            is off by default; at 1024 px it registered what whole frames do (docs/preprocess.md).
         guided_matching: re-match each verified pair under its two-view geometry. On gnome-house
             at 256 px it cut the sofa's worst rotation error from 11.5 to 1.3 degrees.
         grey: what SIFT sees: ``luminance`` (COLMAP's conversion), ``principal`` (the object's
@@ -88,6 +100,8 @@ class PreprocessConfig:
     grey: str = "auto"
     mask_erosion: int = 1
     upscale: int = 2
+    anchor_downscale: int = 1
+    crop_margin: int = -1
     min_frames: int = 3
     min_points: int = 20
     min_mask_pixels: int = 16
@@ -123,6 +137,8 @@ PREPROCESS_RULES = {
     "grey": choice(*GREY_MODES),
     "mask_erosion": integer(0),
     "upscale": integer(1),
+    "anchor_downscale": integer(1),
+    "crop_margin": integer(-1),
     "min_frames": integer(1),
     "min_points": integer(0),
     "min_mask_pixels": integer(1),
@@ -295,7 +311,10 @@ def _reconstruct_in(
     img_dir, mask_dir, out_dir = work / "images", work / "masks", work / "sparse"
     for d in (img_dir, mask_dir, out_dir):
         d.mkdir()
-    names = _write_colmap_images(img_dir, mask_dir, images, masks, frames, object_id, cfg)
+    x0, y0, x1, y1 = crop_box(masks[frames] == object_id, cfg.crop_margin, (K[0, 2], K[1, 2]))
+    K = K.copy()
+    K[:2, 2] -= (x0, y0)  # the crop's camera: the principal point moves with its corner
+    names = _write_colmap_images(img_dir, mask_dir, images[:, y0:y1, x0:x1], masks[:, y0:y1, x0:x1], frames, object_id, cfg)
     db = work / "database.db"
     num_features = _extract_features(db, img_dir, mask_dir, names, K, cfg)
     _match_features(db, len(frames), cfg)
@@ -314,11 +333,28 @@ def _reconstruct_in(
     if keep_model:
         (work / "model").mkdir()
         rec.write(str(work / "model"))
-    sfm = _collect(rec, label, frames, num_features, cfg, W, H)
+    sfm = _collect(rec, label, frames, num_features, cfg, W, H, (x0, y0))
     sfm.reprojection_error_px = rec.compute_mean_reprojection_error() / cfg.upscale
     sfm.restarts = tried
     sfm.repaired_frames = repaired
     return sfm
+
+
+def crop_box(masks: np.ndarray, margin: int, principal_point: tuple[float, float]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: the box of every True pixel of ``masks (T, H, W)`` grown by ``margin``
+    pixels, widened to hold the ``principal_point (cx, cy)`` and clipped to the frame; the whole
+    frame when ``margin < 0`` or nothing is set.
+
+    COLMAP's mapper triangulates nothing from cameras whose principal point lies outside their
+    image (gnome-house's gnome at 512 px: every initial pair was discarded)."""
+    T, H, W = masks.shape
+    ys, xs = np.nonzero(masks.any(0))
+    if margin < 0 or len(xs) == 0:
+        return 0, 0, W, H
+    cx, cy = principal_point
+    x0, y0 = min(int(xs.min()) - margin, int(np.floor(cx)) - 1), min(int(ys.min()) - margin, int(np.floor(cy)) - 1)
+    x1, y1 = max(int(xs.max()) + 1 + margin, int(np.ceil(cx)) + 1), max(int(ys.max()) + 1 + margin, int(np.ceil(cy)) + 1)
+    return max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
 
 
 def _write_colmap_images(
@@ -440,9 +476,13 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: Preproc
     return best, tried
 
 
-def _collect(rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, width: int, height: int) -> ObjectSfM:
+def _collect(
+    rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, width: int, height: int,
+    corner: tuple[int, int] = (0, 0),
+) -> ObjectSfM:
     """The registered frames' poses and sparse depths of ``rec`` (a ``pycolmap.Reconstruction``)
-    in input pixels; raises when too few frames or points were reconstructed."""
+    in input pixels (``corner``: the crop's top-left pixel); raises when too few frames or points
+    were reconstructed."""
     reg = sorted(rec.images.values(), key=lambda im: im.name)
     reg = [im for im in reg if im.has_pose]
     if len(reg) < cfg.min_frames or rec.num_points3D() < cfg.min_points:
@@ -472,7 +512,7 @@ def _collect(rec, label: str, frames: list[int], num_features: int, cfg: Preproc
         out_frames.append(int(Path(im.name).stem))
         poses.append(invert_pose(cfw))
         # Back to input pixels; pixel centres are at .5 in both COLMAP and our convention.
-        pix = np.floor(np.asarray(xy) / cfg.upscale).astype(np.int64)
+        pix = np.floor(np.asarray(xy) / cfg.upscale).astype(np.int64) + np.asarray(corner)
         pix_l.append(np.clip(pix, 0, [width - 1, height - 1]))
         dep_l.append(np.asarray(z))
         # Down-weight observations with large reprojection error (Cauchy-like, 1 px scale).

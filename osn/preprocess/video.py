@@ -27,6 +27,7 @@ from osn.preprocess.inputs import (
     SceneInputs,
     check_inputs,
     downscale_inputs,
+    downscale_video,
     object_inputs_from_observations,
     scene_volume,
     subsample_sparse_depths,
@@ -61,9 +62,13 @@ def preprocess_video(
     for oid, name in sorted(object_names.items()):
         if progress:
             progress(f"SfM of object {oid} ({name})")
+        f = cfg.anchor_downscale if oid == anchor else 1
         try:
-            sfm = reconstruct_object(images, masks, oid, K, cfg, name,
+            video = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
+            sfm = reconstruct_object(*video[:2], oid, video[2], cfg, name,
                                      object_work_dir(work_dir, oid) if work_dir is not None else None)
+            if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones
+                sfm.sparse_pix = [p * f + f // 2 for p in sfm.sparse_pix]
         except ObjectRegistrationError as e:
             if cfg.on_failure == "stop" or oid == anchor:
                 raise

@@ -17,7 +17,8 @@ from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import IGNORE_ID, InputsError, load_inputs
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.preprocess.sfm import (
-    LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, _upscale, principal_grey, reconstruct_object,
+    LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, _upscale, crop_box, principal_grey,
+    reconstruct_object,
 )
 from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
 from osn.evaluate.units import ground_truth_problem
@@ -465,6 +466,53 @@ def test_final_robust_bundle_adjustment_lowers_rotation_errors(sfm_scene):
     plain, robust = means.values()
     assert plain.keys() == robust.keys() and len(plain) == 3
     assert all(robust[k] < plain[k] for k in plain), means
+
+
+def test_crop_box_holds_the_object_and_the_principal_point():
+    masks = np.zeros((3, 100, 200), dtype=bool)
+    masks[0, 60:70, 150:160] = True
+    masks[2, 80:90, 170:180] = True  # the box spans every frame's pixels
+    assert crop_box(masks, 5, (150.0, 75.0)) == (145, 55, 185, 95)
+    # COLMAP triangulates nothing from a camera whose principal point lies outside its image.
+    assert crop_box(masks, 5, (100.0, 50.0)) == (99, 49, 185, 95)
+    assert crop_box(masks, 50, (150.0, 75.0)) == (100, 10, 200, 100)  # clipped to the frame
+    assert crop_box(masks, -1, (150.0, 75.0)) == (0, 0, 200, 100)
+    assert crop_box(np.zeros_like(masks), 5, (150.0, 75.0)) == (0, 0, 200, 100)
+
+
+def test_cropped_sfm_keeps_registration_and_pixels_on_the_object(sfm_scene):
+    """SIFT on each object's crop (its own principal point) registers what whole frames do, and
+    the sparse pixels come back in the frame's coordinates: on the object's mask."""
+    orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
+    for oid in (1, 2):
+        whole = reconstruct_object(orc.images, orc.masks, oid, orc.K, PreprocessConfig(crop_margin=-1), "o")
+        crop = reconstruct_object(orc.images, orc.masks, oid, orc.K, PreprocessConfig(crop_margin=8), "o")
+        assert len(crop.frames) >= len(whole.frames) - 1 and len(crop.frames) >= 3, (whole.frames, crop.frames)
+        on = [orc.masks[t][pix[:, 1], pix[:, 0]] == oid for t, pix in zip(crop.frames, crop.sparse_pix)]
+        assert np.concatenate(on).mean() > 0.95  # off by the crop's corner, they would miss the object
+        x0, y0, _, _ = crop_box(orc.masks[crop.frames] == oid, 8, (orc.K[0, 2], orc.K[1, 2]))
+        assert x0 > 0 or y0 > 0  # the corner moved: pixels were mapped back
+
+
+def test_anchor_downscale_runs_the_anchors_sfm_on_smaller_frames(sfm_scene):
+    """The anchor's SfM on frames averaged down by 2 (what SIFT saw there), its sparse pixels back
+    in full-frame pixels at the blocks' centres, on the anchor; the other objects untouched."""
+    from osn.preprocess.inputs import downscale_video
+
+    orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
+    names = {o.id: o.name for o in orc.objects}
+    cfg = PreprocessConfig(anchor_downscale=2, drop_occluding="none")
+    inputs, rep = preprocess_video(orc.images, orc.masks, orc.K, orc.timestamps, {0: names[0], 1: names[1]}, 0, cfg)
+    features = {r["id"]: r["features"] for r in rep.objects}
+    small = downscale_video(orc.images, orc.masks, orc.K, 2)
+    direct = reconstruct_object(small[0], small[1], 0, small[2], PreprocessConfig(), "room")
+    assert features[0] == direct.num_features
+    assert features[1] == reconstruct_object(orc.images, orc.masks, 1, orc.K, PreprocessConfig()).num_features
+    room = inputs.object(0)
+    assert [len(p) for p in room.sparse_pix] == [len(p) for p in direct.sparse_pix]
+    for t, pix, small_pix in zip(room.frames, room.sparse_pix, direct.sparse_pix):
+        assert np.array_equal(pix, small_pix * 2 + 1)
+        assert (orc.masks[t][pix[:, 1], pix[:, 0]] == 0).mean() > 0.9
 
 
 def test_report_lines_name_dropped_objects_and_repaired_frames():
