@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -206,3 +208,28 @@ def test_subsampling_caps_each_frame_with_a_subset_and_keeps_the_geometry(oracle
     assert auto.meta["sparse_depths_per_frame"] == 256 and [[len(d) for d in o.sparse_depth] for o in auto.objects] == counts
     with pytest.raises(I.InputsError, match="must be >= 0"):
         I.subsample_sparse_depths(inp, -1)
+
+
+def test_a_frame_left_without_sparse_depths_is_carried_through(oracle, tmp_path):
+    """SfM's phantom drop can take every depth of a frame: the object still normalises from its
+    other frames, and the empty frame survives checking, saving, downscaling and the cap."""
+    _, _, inp = oracle
+    o = inp.objects[1]
+    pix, dep, wt = ([x.copy() for x in xs] for xs in (o.sparse_pix, o.sparse_depth, o.sparse_weight))
+    pix[1], dep[1], wt[1] = np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0)
+    obj = I.object_inputs_from_observations(o.id, o.name, o.frames, o.cam_to_obj, pix, dep, wt, inp.K, inp.width,
+                                            inp.height, I.BOX_PADDING, None)
+    kept = np.concatenate(dep)
+    assert obj.sparse_depth[1].shape == (0,) and obj.sparse_pix[1].shape == (0, 2)
+    # The unit is the median of the depths left: every other frame's depths scale by it alone.
+    np.testing.assert_allclose(obj.sparse_depth[0], dep[0] / np.median(kept))
+    assert np.isfinite([obj.near, obj.far]).all() and np.isfinite(obj.bbox).all()
+    objects = [obj if x.id == o.id else x for x in inp.objects]
+    near, far = I.scene_volume(objects, I.SCENE_NEAR_FACTOR, I.SCENE_FAR_FACTOR)
+    out = dataclasses.replace(inp, objects=objects, scene_near=near, scene_far=far)
+    I.check_inputs(out)
+    I.save_inputs(tmp_path / "in", out)
+    back = I.load_inputs(tmp_path / "in")
+    assert [len(d) for d in back.object(o.id).sparse_depth] == [len(d) for d in obj.sparse_depth]
+    for x in (I.downscale_inputs(back, 2), I.subsample_sparse_depths(back, 5)):
+        assert len(x.object(o.id).sparse_depth[1]) == 0 and x.object(o.id).sparse_pix[1].shape == (0, 2)
