@@ -30,12 +30,12 @@ from osn.preprocess.inputs import (
 )
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.preprocess.repair import bundle_adjust, repair_registrations
+from osn.preprocess.sift_frames import principal_grey
 from osn.preprocess.sfm import (
     ObjectRegistrationError,
     ObjectSfM,
     PreprocessConfig,
     PreprocessReport,
-    principal_grey,
     reconstruct_object,
 )
 from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines

@@ -308,11 +308,11 @@ def downscale_inputs(inputs: SceneInputs, factor: int) -> SceneInputs:
     ``factor`` or an object no longer covers any pixel where it has a pose.
     """
     W, H, f = inputs.width, inputs.height, factor
-    check_downscale(W, H, f)
     if f == 1:
+        check_downscale(W, H, f)
         return inputs
-    h, w = H // f, W // f
     images, masks, K = downscale_video(inputs.images, inputs.masks, inputs.K, f)
+    h, w = masks.shape[1:]
     objects = [replace(o, sparse_pix=[np.asarray(p).reshape(-1, 2) // f for p in o.sparse_pix]) for o in inputs.objects]
     out = replace(inputs, width=w, height=h, K=K, images=images, masks=masks, objects=objects,
                   meta={**inputs.meta, "downscaled_from": [W, H], "downscale": f})

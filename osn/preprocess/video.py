@@ -25,6 +25,7 @@ from osn.preprocess.inputs import (
     InputsError,
     ObjectInputs,
     SceneInputs,
+    check_downscale,
     check_inputs,
     downscale_inputs,
     downscale_video,
@@ -57,6 +58,7 @@ def preprocess_video(
     working directory as ``work_dir/object_<id>`` (:func:`object_work_dir`) for inspection.
     """
     T, H, W = masks.shape
+    check_downscale(W, H, cfg.anchor_downscale)  # before SfM, which costs minutes
     report = PreprocessReport()
     objects: list[ObjectInputs] = []
     for oid, name in sorted(object_names.items()):
@@ -64,8 +66,8 @@ def preprocess_video(
             progress(f"SfM of object {oid} ({name})")
         f = cfg.anchor_downscale if oid == anchor else 1
         try:
-            video = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
-            sfm = reconstruct_object(*video[:2], oid, video[2], cfg, name,
+            imgs, msks, Ko = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
+            sfm = reconstruct_object(imgs, msks, oid, Ko, cfg, name,
                                      object_work_dir(work_dir, oid) if work_dir is not None else None)
             if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones
                 sfm.sparse_pix = [p * f + f // 2 for p in sfm.sparse_pix]

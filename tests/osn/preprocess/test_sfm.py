@@ -16,10 +16,8 @@ from osn.preprocess import alignment
 from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import IGNORE_ID, InputsError, load_inputs
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
-from osn.preprocess.sfm import (
-    LUMA, ObjectRegistrationError, PreprocessConfig, PreprocessReport, _upscale, crop_box, principal_grey,
-    reconstruct_object,
-)
+from osn.preprocess.sfm import ObjectRegistrationError, PreprocessConfig, PreprocessReport, reconstruct_object
+from osn.preprocess.sift_frames import LUMA, crop_box, principal_grey, upscale
 from osn.preprocess.video import intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines
 from osn.evaluate.units import ground_truth_problem
 
@@ -294,12 +292,12 @@ def test_upscale_equals_skimage_resize_bit_for_bit():
         for factor in (2, 3):
             want = resize(image, (image.shape[0] * factor, image.shape[1] * factor) + image.shape[2:], order=3,
                           preserve_range=True, anti_aliasing=False)
-            got = _upscale(image, factor)
+            got = upscale(image, factor)
             assert got.dtype == np.uint8 and np.array_equal(got, np.clip(np.rint(want), 0, 255).astype(np.uint8))
     mask = (rng.random((37, 29)) > 0.5).astype(np.uint8) * 255
     want = resize(mask, (74, 58), order=0, preserve_range=True, anti_aliasing=False).astype(np.uint8)
-    assert np.array_equal(_upscale(mask, 2, order=0), want)
-    assert _upscale(mask, 1) is mask
+    assert np.array_equal(upscale(mask, 2, order=0), want)
+    assert upscale(mask, 1) is mask
 
 
 def test_config_rejects_bad_values():
