@@ -290,3 +290,47 @@ def set_accuracy(samples: SetSamples, learned_uniform: np.ndarray, learned_inner
         "learned_fraction": learned,
         "exact_points": points,
     }
+
+
+def limiting_bounds(region: ValidRegion, samples: SetSamples, learned_uniform: np.ndarray, learned_inner: np.ndarray,
+                    chunk: int = 50_000) -> list[dict[str, float]]:
+    """Which of the region's bounds ``s_i / s_j < B_ij`` a learned set gets wrong, and by how much.
+
+    Every region point the learned set misses is charged to the bound it lies nearest (smallest
+    log slack): the learned set cuts that bound too tight. Every learned point outside the region
+    is charged to the bound it violates most: the learned set reaches past it. Both are volumes
+    in units of the region's (:func:`set_accuracy`'s stratified estimates), so over all pairs
+    ``missed`` sums to ``1 - recall`` and ``excess`` to the learned set's volume outside the
+    region over the region's (``recall / precision - recall``).
+
+    Returns one entry per ordered pair with a finite bound: ``i``, ``j``, ``bound`` (``B_ij``),
+    ``missed``, ``excess``; empty when no region point was drawn (nothing to charge against).
+    """
+    B = region.ratio_bounds
+    pairs = np.argwhere(np.isfinite(B) & ~np.eye(region.num_objects, dtype=bool))
+    exact_points = int(np.count_nonzero(samples.exact))
+    if not exact_points or not len(pairs):
+        return []
+    logB = np.log(B[pairs[:, 0], pairs[:, 1]])
+
+    def charge(points: np.ndarray) -> np.ndarray:
+        """Points per pair whose log slack ``log B_ij - (log s_i - log s_j)`` is the smallest:
+        the nearest bound inside the region, the most violated one outside."""
+        counts = np.zeros(len(pairs))
+        for a in range(0, len(points), chunk):
+            with np.errstate(divide="ignore"):  # a scale of exactly 0 (box edge): slack -inf, still a pick
+                x = np.log(points[a:a + chunk])
+            sl = logB[None] - (x[:, pairs[:, 0]] - x[:, pairs[:, 1]])
+            np.add.at(counts, sl.argmin(1), 1.0)
+        return counts
+
+    n = len(samples.inner)
+    lu, li = np.asarray(learned_uniform, bool), np.asarray(learned_inner, bool)
+    v = samples.inner_volume
+    exact = v * exact_points / n
+    missed = charge(samples.inner[samples.exact & ~li]) * v / n
+    # Learned points outside the region: inside the inner box from the inner points, outside it
+    # from the uniform points (the same strata as set_accuracy).
+    excess = charge(samples.inner[~samples.exact & li]) * v / n + charge(samples.uniform[lu & ~samples.in_inner]) / len(samples.uniform)
+    return [{"i": int(i), "j": int(j), "bound": float(B[i, j]), "missed": float(m / exact), "excess": float(e / exact)}
+            for (i, j), m, e in zip(pairs, missed, excess)]

@@ -90,7 +90,7 @@ class EvalResult:
 
     table: dict[str, dict[str, list[float]]]
     per_gt: list[dict[str, Any]]
-    valid_set: dict[str, float]
+    valid_set: dict[str, Any]
     scale_error: list[float]
     curves: dict[str, Any]
     timings: dict[str, float]

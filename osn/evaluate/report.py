@@ -171,6 +171,30 @@ def _reached(train_log: list[dict[str, Any]]) -> str:
     return f"{psnr} / {iou}"
 
 
+#: Pairs whose missed or excess share of the region is below this are left out of the report's table.
+LIMIT_SHARE = 0.005
+
+
+def limits_lines(limits: list[dict[str, Any]], rows: int = 8) -> list[str]:
+    """The report's table of the region's pair bounds the learned set gets most wrong
+    (:func:`osn.evaluate.valid_set.valid_set_accuracy`'s ``limits``), largest share first."""
+    shown = sorted((e for e in limits if max(e["missed"], e["excess"]) >= LIMIT_SHARE), key=lambda e: -(e["missed"] + e["excess"]))
+    if not shown:
+        return []
+    lines = [
+        "Where the learned valid set departs from the exact region, per pair bound `s_i / s_j < B_ij`: the share of the "
+        "region it misses nearest that bound (too tight there) and its volume beyond that bound in units of the region's "
+        "(too loose); missed shares add up to 1 - recall.",
+        "",
+        "| bound | B_ij | missed | beyond |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {e['pair']} | {e['bound']:.4f} | {e['missed']:.3f} | {e['excess']:.3f} |" for e in shown[:rows]]
+    if len(shown) > rows:
+        lines.append(f"| ({len(shown) - rows} more in metrics.json) | | | |")
+    return lines + [""]
+
+
 def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: str) -> Path:
     """Write ``report.md``, ``metrics.json`` and the plots to ``out_dir``; returns the report path."""
     out = Path(out_dir)
@@ -212,6 +236,7 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         f"| layered estimate alone picks the same match | {100 * e['approx_match_agrees']:.0f}% of ground truths |",
         "",
     ]
+    lines += limits_lines(v.get("limits", []))
     lines += [f"![{p}]({p})" for p in plots]
     lines += ["", "`metrics.json` holds every number here, per ground truth, with the timings."]
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode())

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from scenecore.validity import ValidRegion, set_accuracy, set_samples
+from scenecore.validity import ValidRegion, limiting_bounds, set_accuracy, set_samples
 
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
@@ -14,21 +14,33 @@ from osn.preprocess.inputs import normalise_scales
 from osn.evaluate.units import actual_scales, dataset_box, free_normalised, normalised, true_scales
 
 
-def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_000, seed: int = 0) -> dict[str, float]:
-    """Precision / recall / IoU of the learned valid set (score > VALID_THRESHOLD) against the exact region.
+def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_000, seed: int = 0) -> dict[str, Any]:
+    """Precision / recall / IoU of the learned valid set (score > VALID_THRESHOLD) against the exact region,
+    and which of the region's pair bounds it gets wrong (``limits``).
 
     Stratified Monte Carlo (:func:`scenecore.validity.set_samples`): ``points`` uniform in the
     scale network's box and as many in the product of the region's intervals, so a region of
     1e-6 of the box (8 objects) is resolved as well as one of 1e-2. Needs the inputs'
     ground-truth units (oracle or aligned SfM). ``exact_points`` says how many region points
     were drawn; with none, recall and IoU are NaN.
+
+    ``limits`` (:func:`scenecore.validity.limiting_bounds`): per pair bound ``s_i / s_j < B_ij``
+    of the region, named ``"i < j"`` by object name, the share of the region the learned set misses
+    at that bound (``missed``: cut too tight) and its volume beyond it in units of the region's
+    (``excess``: reaches too far); the pairs with the largest shares are what to look at first.
     """
     K = run.inputs.num_objects
     if K == 1:
-        return {"precision": 1.0, "recall": 1.0, "iou": 1.0, "points": 0}
+        return {"precision": 1.0, "recall": 1.0, "iou": 1.0, "points": 0, "limits": []}
     pts = set_samples(region, dataset_box(run.inputs, run.ranges, region.num_objects), points, seed)
     learned = [run.scores(free_normalised(run.inputs, run.ranges, x)) > VALID_THRESHOLD for x in (pts.uniform, pts.inner)]
-    return {**set_accuracy(pts, *learned), "points": 2 * points}
+    names = {o.id: o.name for o in run.inputs.objects}
+
+    def name(i: int) -> str:
+        return names.get(i, f"object {i}")  # an object the inputs leave out (held at scale 1)
+
+    limits = [{"pair": f"{name(e['i'])} < {name(e['j'])}", **e} for e in limiting_bounds(region, pts, *learned)]
+    return {**set_accuracy(pts, *learned), "points": 2 * points, "limits": limits}
 
 
 def _exactly_valid(run: TrainedRun, region, actual: np.ndarray) -> np.ndarray:

@@ -123,3 +123,43 @@ def test_set_accuracy_resolves_a_region_of_a_millionth_of_the_box():
     held[3] = [0.25, 0.25]
     pts3 = set_samples(region, held, 5000)
     assert np.all(pts3.uniform[:, 3] == 0.25) and np.all(pts3.inner[:, 3] == 0.25)
+
+
+def test_limiting_bounds_charge_misses_and_excess_to_the_pair_that_is_off():
+    """A learned set with one bound 10% too loose (s_1 < 1.1 instead of 1) and another 10% too
+    tight (s_2 < 1.35 s_1 instead of 1.5 s_1): its excess is all beyond the loose bound, its misses
+    mostly at the tight one, and the charges add up to set_accuracy's precision and recall."""
+    from scenecore.validity import limiting_bounds, set_accuracy, set_samples
+
+    B = np.full((3, 3), np.inf)
+    B[1, 0], B[2, 0], B[2, 1] = 1.0, 2.0, 1.5
+    region = ValidRegion.from_bounds(B)
+    pts = set_samples(region, np.array([[1.0, 1.0], [0.0, 3.0], [0.0, 3.0]]), 20_000, seed=1)
+
+    def learned(s):
+        return (s[:, 1] < 1.1) & (s[:, 2] < 2.0) & (s[:, 2] < 1.35 * s[:, 1])
+
+    lu, li = learned(pts.uniform), learned(pts.inner)
+    acc = set_accuracy(pts, lu, li)
+    lim = {(e["i"], e["j"]): e for e in limiting_bounds(region, pts, lu, li)}
+    assert set(lim) == {(1, 0), (2, 0), (2, 1)} and lim[(2, 1)]["bound"] == 1.5
+    assert sum(e["missed"] for e in lim.values()) == pytest.approx(1.0 - acc["recall"], rel=1e-9)
+    outside = (acc["learned_fraction"] - acc["precision"] * acc["learned_fraction"]) / acc["exact_fraction"]
+    assert sum(e["excess"] for e in lim.values()) == pytest.approx(outside, rel=1e-9)
+    assert acc["recall"] < 0.95 and acc["precision"] < 0.95  # both errors are there to find
+    assert lim[(1, 0)]["excess"] == pytest.approx(outside) and lim[(2, 1)]["excess"] == 0.0
+    assert lim[(2, 1)]["missed"] > 0.8 * (1.0 - acc["recall"])
+    # Too loose inside the region's interval box (s_2 < 1.7 s_1): charged through the inner points.
+    def loose(s):
+        return region.contains(s) | ((s[:, 1] < 1.0) & (s[:, 2] < 1.7 * s[:, 1]) & (s[:, 2] < 2.0))
+
+    lu, li = loose(pts.uniform), loose(pts.inner)
+    acc = set_accuracy(pts, lu, li)
+    lim = {(e["i"], e["j"]): e for e in limiting_bounds(region, pts, lu, li)}
+    outside = (acc["learned_fraction"] - acc["precision"] * acc["learned_fraction"]) / acc["exact_fraction"]
+    assert acc["recall"] == 1.0 and outside > 0.05 and lim[(2, 1)]["excess"] == pytest.approx(outside, rel=1e-9)
+    # The region itself: nothing to charge; a region that misses the box: no entries.
+    exact = limiting_bounds(region, pts, region.contains(pts.uniform), region.contains(pts.inner))
+    assert all(e["missed"] == 0.0 and e["excess"] == 0.0 for e in exact)
+    far = set_samples(region, np.array([[1.0, 1.0], [2.0, 3.0], [0.0, 3.0]]), 1000)
+    assert limiting_bounds(region, far, far.uniform[:, 0] > 0, far.inner[:, 0] > 0) == []

@@ -46,6 +46,12 @@ def test_outputs_are_sensible(demo):
     assert m["valid_set"]["recall"] >= 0.85, m["valid_set"]
     assert best["psnr"][0] - single["psnr"][0] >= 1.0, (best["psnr"], single["psnr"])
     assert best["psnr"][0] - table["centre of learned ranges"]["psnr"][0] >= 1.0
+    # Which pair bounds the learned set gets wrong: the misses add up to what recall lacks, and
+    # the report names the worst pair by its objects' names.
+    limits = m["valid_set"]["limits"]
+    assert sum(e["missed"] for e in limits) == pytest.approx(1.0 - m["valid_set"]["recall"], abs=1e-9)
+    worst = max(limits, key=lambda e: e["missed"] + e["excess"])
+    assert f"| {worst['pair']} | {worst['bound']:.4f} |" in (demo / "report" / "report.md").read_text()
     # The layered search (quantised scales, per-object layers) ranks like exact renders: it picks
     # the exact best sample for most ground truths, and its PSNR of the match is close to the
     # exact one (a broken search would pick among 60 samples at random).
