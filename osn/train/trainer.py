@@ -23,7 +23,7 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import TrainConfig, resolve_depth_robust
+from osn.train.config import TrainConfig, resolve_depth_robust, resolve_w_edge
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
@@ -32,7 +32,6 @@ log = logging.getLogger(__name__)
 
 #: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
 REPLAY_SIZE = 4096
-
 
 def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float = 0.0) -> torch.Tensor:
     """Mean loss of rendered depths ``(P,)`` against sparse depths ``(P,)`` (object units).
@@ -54,6 +53,25 @@ def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float =
     return (c2 * torch.log1p(r2 / c2)).mean()
 
 
+def edge_excess(depth: torch.Tensor, acc: torch.Tensor, inner_depth: torch.Tensor, inner_acc: torch.Tensor,
+                slope: float) -> torch.Tensor:
+    """Mean squared excess of silhouette rays' log depth over their inner neighbours' (held fixed)
+    beyond ``slope``; depths ``(n,)`` are the renderer's unnormalised ``sum w t`` with opacity ``acc``.
+
+    On a silhouette ray the field's soft edge is crossed only partly, and the opacity term then
+    puts the rest of the ray's weight behind the surface: the edge reads farther than the object
+    and the contact bounds it sets come out tight (docs/training.md). One-sided, so an edge may
+    read nearer than inside (a rim in front); only rays where both hit the object (``acc > 0.5``)
+    count, an empty ray having no depth. 0 (with a gradient path) when none does.
+    """
+    hit = (acc > 0.5) & (inner_acc > 0.5)
+    if not bool(hit.any()):
+        return acc.sum() * 0.0
+    d = torch.log(depth[hit] / acc[hit])
+    d_in = torch.log(inner_depth[hit] / inner_acc[hit]).detach()
+    return F.relu(d - d_in - slope).square().mean()
+
+
 class Trainer:
     """Owns the fields, the scale network, their optimisers and the RNG; one ``step`` per iteration."""
 
@@ -61,6 +79,7 @@ class Trainer:
         self.cfg, self.device = cfg, device
         self.st = SceneTensors(inputs, device)
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
+        self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
         K = self.st.K
         if self.st.unposed_pixels:
             log.warning("%d mask pixels belong to objects without a pose in their frame (not registered there); "
@@ -86,6 +105,7 @@ class Trainer:
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
         self.bg = torch.tensor(cfg.background, device=device)
         self.free = self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects)
+        self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
@@ -163,6 +183,20 @@ class Trainer:
         out = render(st.object_rays(self.fields, fp // (st.H * st.W), one, [k]), st.dirs[fp % (st.H * st.W)], self.cfg.samples, self.gen, self.bg, cfg.skip_occluded)
         return out.acc.square().mean()
 
+    def _edge_loss(self, k: int) -> torch.Tensor:
+        """:func:`edge_excess` of object k alone on ``edge_rays`` of its silhouette pixels and their
+        inner neighbours (:meth:`SceneTensors.edge_pairs`)."""
+        st, cfg = self.st, self.cfg
+        edge, inner = self.edges[k]
+        if not len(edge):
+            return torch.zeros((), device=self.device)
+        i = self._randint(len(edge), cfg.edge_rays)
+        flat = torch.cat([edge[i], inner[i]])
+        one = torch.ones(st.K, device=self.device)
+        out = render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        n = len(i)
+        return edge_excess(out.depth[:n], out.acc[:n], out.depth[n:], out.acc[n:], cfg.edge_slope)
+
     def _tv(self, k: int) -> torch.Tensor | float:
         w = self.cfg.field.tv_density
         return w * self.fields[k].density_tv() if w > 0 else 0.0
@@ -214,6 +248,10 @@ class Trainer:
                 losses["distortion"] += l_dist.item() / st.K
             l_free = self._free_loss(k)
             total = total + cfg.w_free * l_free
+            if self.w_edge > 0 and k != st.anchor:  # the anchor's edges are against objects, not a silhouette
+                l_edge = self._edge_loss(k)
+                total = total + self.w_edge * l_edge
+                losses["edge"] = losses.get("edge", 0.0) + l_edge.item() / st.K
             losses["free"] += l_free.item() / st.K
             losses["rgb"] += l_rgb.item() / st.K
             losses["depth"] += l_depth.item() / st.K
