@@ -25,6 +25,7 @@ _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
     "w_edge": Rule(lambda v: v == "auto" or number(0.0).ok(v), "auto or a number >= 0"),
+    "anchor_coverage": Rule(lambda v: v == "auto" or number(0.0, 1.0).ok(v), "auto or a number in [0, 1]"),
     "edge_slope": number(0.0),
     "depth_robust": Rule(lambda v: v == "auto" or number(0.0).ok(v), "auto or a number >= 0"),
     **{name: integer(1) for name in _POSITIVE},
@@ -38,7 +39,7 @@ _RULES: dict[str, Rule] = {
 
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
-ADDED_LATER: dict[str, Any] = {"w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0}
+ADDED_LATER: dict[str, Any] = {"w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9}
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -58,6 +59,20 @@ def resolve_w_edge(value: float | str, source: str) -> float:
     bounds tight (SfM 512 px: recall 0.93 -> 0.97; 1024 px: IoU +0.06)."""
     if value == "auto":
         return 0.0 if source == "oracle" else W_EDGE_SFM
+    return float(value)
+
+
+#: ``anchor_coverage: auto`` on inputs other than the oracle's, and on the oracle's.
+ANCHOR_COVERAGE_SFM, ANCHOR_COVERAGE_ORACLE = 0.5, 0.9
+
+
+def resolve_anchor_coverage(value: float | str, source: str) -> float:
+    """The opacity above which the anchor covers a label ray, for inputs from ``source``: ``auto``
+    is :data:`ANCHOR_COVERAGE_SFM` on SfM inputs (there the room behind the gnome's feet stayed
+    below 0.9 and the pool lost the gnome's contact rays: valid set +0.03 to +0.04 IoU) and the
+    objects' 0.9 on the oracle's (0.5 cost it 0.02; docs/training.md, "The anchor's coverage")."""
+    if value == "auto":
+        return ANCHOR_COVERAGE_ORACLE if source == "oracle" else ANCHOR_COVERAGE_SFM
     return float(value)
 
 
@@ -119,6 +134,7 @@ class TrainConfig:
     label_erode: int = 0
     label_stride: int = 0
     coverage_threshold: float = 0.9
+    anchor_coverage: float | str = "auto"  # resolved by resolve_anchor_coverage
     uncertain_acc: float = 0.9
     valid_threshold: float = 0.95
     candidates: int = 4096

@@ -14,7 +14,8 @@ from osn.model.volume import render
 from osn.preprocess.inputs import normalise_scales
 from osn.preprocess.oracle import oracle_inputs
 from osn.train import Trainer, build_schedule
-from osn.train.labels import label_pixels, render_alone_depths
+from osn.train.config import resolve_anchor_coverage
+from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
 from osn.train.trainer import sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
@@ -91,11 +92,41 @@ def test_label_pool_drops_rays_with_a_semi_transparent_object(tiny_dataset: Path
         tr.step_stage1()
     flat = label_pixels(tr.st, cfg)
     c = render_alone_depths(tr.st, tr.fields, flat, cfg)
-    expected = ((c["acc"] > 0.05) & (c["acc"] <= 0.9)).any(1)
+    threshold = torch.full((tr.st.K,), 0.9)
+    threshold[tr.st.anchor] = resolve_anchor_coverage(cfg.anchor_coverage, "oracle")  # the anchor's own (0.9 here)
+    expected = ((c["acc"] > 0.05) & (c["acc"] <= threshold)).any(1)
     assert torch.equal(c["uncertain"], expected) and expected.any() and (~expected).any()
     tr.ensure_cache(tr.schedule[1])
     assert not torch.isin(tr.cache["flat"], flat[expected]).any()
     assert not render_alone_depths(tr.st, tr.fields, flat, dataclasses.replace(cfg, uncertain_acc=0.9))["uncertain"].any()
+
+
+def test_anchor_covers_label_rays_at_its_own_lower_opacity(tiny_dataset: Path) -> None:
+    """``anchor_coverage`` (0.5, SfM's ``auto``) instead of ``coverage_threshold`` (0.9) for the
+    anchor alone: the anchor covers exactly the rays where its opacity exceeds 0.5, the other
+    objects' coverage is unchanged, and rays the anchor gains (opacity in (0.5, 0.9]) join the
+    contested pool. ``auto`` is 0.5 on any source but the oracle's, 0.9 there."""
+    assert resolve_anchor_coverage("auto", "colmap") == 0.5 and resolve_anchor_coverage("auto", "oracle") == 0.9
+    assert resolve_anchor_coverage(0.7, "oracle") == 0.7
+    with pytest.raises(ValueError, match="anchor_coverage"):
+        _cfg(anchor_coverage=1.5)
+    cfg = _cfg(anchor_coverage=0.5)
+    tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
+    for _ in range(150):  # objects opaque enough to contest rays; the room behind them is not yet
+        tr.step_stage1()
+    flat = label_pixels(tr.st, cfg)
+    strict = dataclasses.replace(cfg, anchor_coverage=0.9)
+    c, c9 = render_alone_depths(tr.st, tr.fields, flat, cfg), render_alone_depths(tr.st, tr.fields, flat, strict)
+    a = tr.st.anchor
+    others = [k for k in range(tr.st.K) if k != a]
+    assert torch.equal(c["covered"][:, a], c["acc"][:, a] > 0.5) and torch.equal(c9["covered"][:, a], c9["acc"][:, a] > 0.9)
+    assert torch.equal(c["covered"][:, others], c9["covered"][:, others])
+    gained = c["covered"][:, a] & ~c9["covered"][:, a]
+    assert gained.any()
+    pool = build_label_pool(tr.st, tr.fields, cfg, 0)["flat"]
+    pool9 = build_label_pool(tr.st, tr.fields, strict, 0)["flat"]
+    assert set(pool9.tolist()) <= set(pool.tolist()) and len(pool) > len(pool9)
+    assert torch.isin(torch.tensor(sorted(set(pool.tolist()) - set(pool9.tolist()))), flat[gained]).all()
 
 
 def test_scale_phase_warns_when_no_ray_constrains_overlapping_objects(tiny_dataset: Path, caplog) -> None:
