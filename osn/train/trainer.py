@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 #: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
 REPLAY_SIZE = 4096
 
+
 def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float = 0.0) -> torch.Tensor:
     """Mean loss of rendered depths ``(P,)`` against sparse depths ``(P,)`` (object units).
 
