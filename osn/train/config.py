@@ -21,13 +21,18 @@ _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_
                  "free_band", "free_band_objects", "label_rays", "label_erode", "label_stride")
 _FRACTIONS = ("label_replay", "label_trim", "final_label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
 
+def _auto_or(rule: Rule) -> Rule:
+    """``auto`` (resolved per input source by :func:`by_source`) or a value ``rule`` accepts."""
+    return Rule(lambda v: v == "auto" or rule.ok(v), f"auto or {rule.what}")
+
+
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
-    "w_edge": Rule(lambda v: v == "auto" or number(0.0).ok(v), "auto or a number >= 0"),
-    "anchor_coverage": Rule(lambda v: v == "auto" or number(0.0, 1.0).ok(v), "auto or a number in [0, 1]"),
+    "w_edge": _auto_or(number(0.0)),
+    "anchor_coverage": _auto_or(number(0.0, 1.0)),
     "edge_slope": number(0.0),
-    "depth_robust": Rule(lambda v: v == "auto" or number(0.0).ok(v), "auto or a number >= 0"),
+    "depth_robust": _auto_or(number(0.0)),
     **{name: integer(1) for name in _POSITIVE},
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
@@ -47,6 +52,15 @@ ADDED_LATER: dict[str, Any] = {"w_distortion": 0.0, "depth_robust": 0.0, "w_edge
 DEPTH_ROBUST_SFM = 3.0
 
 
+def by_source(value: float | str, source: str, oracle: float, other: float) -> float:
+    """An option that may be ``auto``: ``oracle`` on the oracle's inputs (exact poses and depths),
+    ``other`` on anything else (SfM, a user's video); a number stays itself. The resolvers below
+    say, per option, why the two differ."""
+    if value == "auto":
+        return oracle if source == "oracle" else other
+    return float(value)
+
+
 #: ``w_edge: auto`` on inputs other than the oracle's: the weight of the silhouette-depth term
 #: (:func:`osn.train.trainer.edge_excess`; docs/training.md, "Silhouette depth").
 W_EDGE_SFM = 1.0
@@ -57,9 +71,7 @@ def resolve_w_edge(value: float | str, source: str) -> float:
     oracle's (there it cost the demo's valid set 0.03 IoU over four seeds) and :data:`W_EDGE_SFM` on
     anything else, where the objects' fields read their silhouettes too far and cut the contact
     bounds tight (SfM 512 px: recall 0.93 -> 0.97; 1024 px: IoU +0.06)."""
-    if value == "auto":
-        return 0.0 if source == "oracle" else W_EDGE_SFM
-    return float(value)
+    return by_source(value, source, 0.0, W_EDGE_SFM)
 
 
 #: ``anchor_coverage: auto`` on inputs other than the oracle's, and on the oracle's (the objects' threshold).
@@ -72,18 +84,14 @@ def resolve_anchor_coverage(value: float | str, source: str) -> float:
     below 0.9 and the pool lost the gnome's contact rays: the demo's valid set +0.027 IoU over six
     seeds) and the objects' 0.9 on the oracle's (0.5 cost it 0.035 over three; docs/training.md,
     "The anchor's coverage")."""
-    if value == "auto":
-        return ANCHOR_COVERAGE_ORACLE if source == "oracle" else ANCHOR_COVERAGE_SFM
-    return float(value)
+    return by_source(value, source, ANCHOR_COVERAGE_ORACLE, ANCHOR_COVERAGE_SFM)
 
 
 def resolve_depth_robust(value: float | str, source: str) -> float:
     """The sparse-depth loss's robustness for inputs from ``source``: ``auto`` is the squared
     error on the oracle's exact depths (robust there it cost the demo's valid set 0.035 IoU) and
     :data:`DEPTH_ROBUST_SFM` on anything else, whose depths hold SfM's phantom points."""
-    if value == "auto":
-        return 0.0 if source == "oracle" else DEPTH_ROBUST_SFM
-    return float(value)
+    return by_source(value, source, 0.0, DEPTH_ROBUST_SFM)
 
 
 @dataclass

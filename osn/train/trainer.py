@@ -21,7 +21,7 @@ from osn.model.fields import make_field
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
-from osn.model.volume import render
+from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import TrainConfig, resolve_depth_robust, resolve_w_edge
 from osn.train.labels import build_label_pool, near_positives
@@ -172,29 +172,30 @@ class Trainer:
     def _randint(self, n: int, size: int) -> torch.Tensor:
         return torch.randint(n, (size,), generator=self.gen).to(self.device)
 
+    def _render_alone(self, k: int, flat: torch.Tensor) -> RenderOutput:
+        """Object k alone, at its own unit, on training pixels ``flat (R,)`` (stratified samples)."""
+        st, cfg = self.st, self.cfg
+        one = torch.ones(st.K, device=self.device)
+        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+
     def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see
         :meth:`SceneTensors.free_pixels`): keeps its field from bleeding past its silhouette,
         which would otherwise read as "k is behind the anchor" to the scale labels."""
-        st, cfg, free = self.st, self.cfg, self.free[k]
+        cfg, free = self.cfg, self.free[k]
         if cfg.w_free <= 0 or not len(free):
             return torch.zeros((), device=self.device)
-        fp = free[self._randint(len(free), cfg.free_rays)]
-        one = torch.ones(st.K, device=self.device)
-        out = render(st.object_rays(self.fields, fp // (st.H * st.W), one, [k]), st.dirs[fp % (st.H * st.W)], self.cfg.samples, self.gen, self.bg, cfg.skip_occluded)
-        return out.acc.square().mean()
+        return self._render_alone(k, free[self._randint(len(free), cfg.free_rays)]).acc.square().mean()
 
     def _edge_loss(self, k: int) -> torch.Tensor:
         """:func:`edge_excess` of object k alone on ``edge_rays`` of its silhouette pixels and their
         inner neighbours (:meth:`SceneTensors.edge_pairs`)."""
-        st, cfg = self.st, self.cfg
+        cfg = self.cfg
         edge, inner = self.edges[k]
         if not len(edge):
             return torch.zeros((), device=self.device)
         i = self._randint(len(edge), cfg.edge_rays)
-        flat = torch.cat([edge[i], inner[i]])
-        one = torch.ones(st.K, device=self.device)
-        out = render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        out = self._render_alone(k, torch.cat([edge[i], inner[i]]))
         n = len(i)
         return edge_excess(out.depth[:n], out.acc[:n], out.depth[n:], out.acc[n:], cfg.edge_slope)
 
