@@ -42,7 +42,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     from benchgen.render.generate import generate
 
     spec = _load_spec(args)
-    return _report(generate(spec, args.out, args.workers, args.executor, args.address, progress=not args.quiet))
+    return _report(generate(spec, args.out, args.workers, args.executor, args.address, progress=not args.quiet,
+                            video_only=args.video_only))
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
@@ -110,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: the spec's)")
     p.add_argument("--configs", type=int, default=None, help="number G of ground-truth configurations (default: the spec's)")
     p.add_argument("--seed", type=int, default=None, help="seed of the configuration sampler and the renderer (default: the spec's)")
+    p.add_argument("--video-only", action="store_true",
+                   help="render the training video alone (frames, depth, ids): no valid region, configurations, test views "
+                   "or verification; e.g. SfM's input at a higher resolution. Rerun without it to render the rest")
     _add_run_options(p)
     p = subcommand(
         sub, "verify", _cmd_verify, "re-render every configuration's training frames and check invariance",

@@ -10,6 +10,11 @@ Phases (each resumable; every file is written atomically through ``scenecore.dat
 5. ``verify`` tasks: each configuration's training frames re-rendered and compared with the base
    video, its test views compared with configuration 0's -> ``verification.json``.
 
+``video_only`` stops after the training video (``video`` tasks: frames, depth and ids, no
+per-object renders): SfM's input at another resolution, read for its frames and masks, its ground
+truth only measuring SfM's accuracy. Such a directory has no region, configurations or
+verification; running ``generate`` without ``video_only`` on it later renders the rest.
+
 Tasks run on a ``Worker`` holding one Blender scene: in-process, in N spawned processes
 (``--workers``), or in N Ray actors (``--executor ray``; the output directory must then be on a
 file system shared by the cluster). Results never depend on how frames are sharded: emission-only
@@ -47,7 +52,7 @@ ALONE_SAMPLES = 1
 
 @dataclass
 class Task:
-    """A unit of work: ``kind`` in {train, test, verify}; ``config`` and its ``scales``; frame names."""
+    """A unit of work: ``kind`` in {train, video, test, verify}; ``config`` and its ``scales``; frame names."""
 
     kind: str
     frames: list[str]
@@ -111,6 +116,14 @@ class Worker:
                 raise RuntimeError(f"frame {name}: per-object depth renders disagree with the full render")
             accumulate_ratio_bounds(bounds, full.ids, alone, where=f"frame {name}")
         return TaskResult(task, 0, 0.0, bounds=bounds)
+
+    def _video(self, task: Task) -> TaskResult:
+        for name in task.frames:
+            if not D.frame_paths(self.root, name).exist():
+                f = self.frames[name]
+                full = self.renderer.render(f.camera_to_world, self.built.poses(f.time_index))
+                D.write_frame(self.root, name, full.rgb8(), full.depth, full.ids)
+        return TaskResult(task, 0, 0.0)
 
     def _test(self, task: Task) -> TaskResult:
         for name in task.frames:
@@ -237,10 +250,12 @@ class Summary:
     names: list[str] = field(default_factory=list)
     verification: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    video_only: bool = False
 
     @property
     def passed(self) -> bool:
-        return bool(self.verification.get("passed"))
+        """Every configuration verified; for a training video alone, that it was written."""
+        return self.video_only or bool(self.verification.get("passed"))
 
     def add(self, r: TaskResult) -> None:
         self.frames_rendered += r.rendered
@@ -335,9 +350,11 @@ def _verify_all(
 
 
 def generate(
-    spec: SceneSpec, root: str | Path, workers: int = 1, executor: str = "local", address: str | None = None, progress: bool = True
+    spec: SceneSpec, root: str | Path, workers: int = 1, executor: str = "local", address: str | None = None,
+    progress: bool = True, video_only: bool = False,
 ) -> Summary:
-    """Generate (or finish) a dataset; see the module docstring for the phases."""
+    """Generate (or finish) a dataset; see the module docstring for the phases (``video_only``:
+    the training video alone)."""
     t0 = time.perf_counter()
     root = Path(root)
     spec_text = dump_spec(spec)
@@ -349,9 +366,17 @@ def generate(
     scene = built.scene
     D.write_scene(root, scene)
     names = [g.name for g in built.objects]
-    summary = Summary(str(root), workers=workers, names=names)
+    summary = Summary(str(root), workers=workers, names=names, video_only=video_only)
     with Executor(spec, root, workers, executor, address) as ex:
         train = [f.name for f in scene.train_frames]
+        if video_only:
+            todo = [n for n in train if not D.frame_paths(root, n).exist()]
+            with _progress(len(todo), "training video", progress) as bar:
+                for r in ex.map(Task("video", s) for s in _chunks(todo, max(1, -(-len(todo) // workers)))):
+                    summary.add(r)
+                    bar.update(len(r.task.frames))
+            summary.wall_seconds = time.perf_counter() - t0
+            return summary
         have_region = (root / "valid_region.json").exists() and all(D.frame_paths(root, n).exist() for n in train)
         if have_region:
             region = D.load_valid_region(root, scene.num_objects)

@@ -119,23 +119,21 @@ class DemoPaths:
 # refuse changed options).
 
 
-def _demo_spec(args: argparse.Namespace, resolution: int | None, configs: int | None, test_views: int | None = None):
+def _demo_spec(args: argparse.Namespace, resolution: int | None, configs: int | None):
     """The preset with the demo's overrides (None keeps the preset's value)."""
     spec = load_preset(args.preset)
-    if not (resolution or configs or test_views):
+    if not (resolution or configs):
         return spec
     d = spec.to_dict()
     if resolution:
         d["resolution"] = [resolution, resolution]
     if configs:
         d["configs"] = configs
-    if test_views:
-        d["rig"]["test_views"] = test_views
     return spec_from_dict(d, f"{args.preset} (demo overrides)")
 
 
-def _generate(spec, out: Path, args: argparse.Namespace) -> dict:
-    s = generate(spec, out, workers=args.workers, progress=True)
+def _generate(spec, out: Path, args: argparse.Namespace, video_only: bool = False) -> dict:
+    s = generate(spec, out, workers=args.workers, progress=True, video_only=video_only)
     if not s.passed:
         raise UserError(f"{out}: the generated benchmark failed its invariance verification (see verification.json)")
     for line in s.lines():
@@ -159,9 +157,29 @@ def sfm_downscale(args: argparse.Namespace, dataset_width: int) -> int:
 
 
 def stage_sfm_video(args: argparse.Namespace, p: DemoPaths) -> dict:
-    """The training video again at ``--sfm-resolution`` (same scene, one configuration, one test
-    view: SfM reads only its frames and masks; its ground truth only measures SfM's accuracy)."""
-    return _generate(_demo_spec(args, args.sfm_resolution, 1, 1), p.sfm_video, args)
+    """The training video again at ``--sfm-resolution`` (the same scene; the video alone: SfM
+    reads only its frames and masks, its ground truth only measures SfM's accuracy)."""
+    return _generate(_demo_spec(args, args.sfm_resolution, None), p.sfm_video, args, video_only=True)
+
+
+#: The demo's SfM of the anchor runs on frames of at most this size (``--anchor-downscale auto``):
+#: the room fills the frame and registers within 0.1 degree at 512 px (docs/preprocess.md).
+ANCHOR_SFM_SIZE = 512
+#: ``--crop-margin auto``: crops from this SfM resolution up, whole frames below (at 512 px crops
+#: moved the ring-toy's worst frame from 2.96 to 4.97 degrees; at 1024 they cost nothing and cut
+#: SfM from 377 to 231 s: docs/preprocess.md).
+CROP_FROM, CROP_MARGIN = 1024, 32
+
+
+def demo_preprocess_config(args: argparse.Namespace, sfm_width: int) -> PreprocessConfig:
+    """The demo's SfM settings for frames ``sfm_width`` wide (``auto`` options resolved)."""
+    try:
+        anchor = max(1, sfm_width // ANCHOR_SFM_SIZE) if args.anchor_downscale == "auto" else int(args.anchor_downscale)
+        crop = (CROP_MARGIN if sfm_width >= CROP_FROM else -1) if args.crop_margin == "auto" else int(args.crop_margin)
+        return PreprocessConfig(on_failure="skip", anchor_downscale=anchor, crop_margin=crop)
+    except ValueError as e:  # not an integer, or out of range
+        raise UserError(f"--anchor-downscale {args.anchor_downscale} / --crop-margin {args.crop_margin}: "
+                        f"each is auto or an integer ({e})") from None
 
 
 def _sfm_lines(objects: list[dict]) -> list[str]:
@@ -184,7 +202,7 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
     save_inputs(p.oracle, oracle_inputs(p.dataset, video=video))
     sfm_source = p.sfm_video if factor > 1 else p.dataset
     try:
-        cfg = PreprocessConfig(on_failure="skip")
+        cfg = demo_preprocess_config(args, scene.width * factor)
         inputs, report = preprocess_dataset(sfm_source, cfg, progress=lambda m: print(f"  {m} ...", flush=True),
                                             video=video if factor == 1 else None)
         inputs = training_inputs(inputs, factor, cfg)
@@ -240,7 +258,9 @@ def stage_addon(args: argparse.Namespace, p: DemoPaths) -> dict:
 def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     """Run (or resume) every stage under ``args.work``; returns the stage records."""
     p = DemoPaths(Path(args.work))
-    sfm_factor = sfm_downscale(args, _demo_spec(args, args.resolution, args.configs).width)  # a bad one stops here
+    width = _demo_spec(args, args.resolution, args.configs).width
+    sfm_factor = sfm_downscale(args, width)  # a bad one stops here, before rendering
+    demo_preprocess_config(args, width * sfm_factor)  # so do bad SfM options
     train_cfg = _scaled_config(args.iterations, args.train_config)  # also what the train stage depends on
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
@@ -253,7 +273,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
                             partial(stage_sfm_video, args, p), {"preset": args.preset, "sfm_resolution": args.sfm_resolution}))
     stages += [
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p),
-              {"sfm_resolution": args.sfm_resolution} if args.sfm_resolution else {}),
+              {"sfm_resolution": args.sfm_resolution, "anchor_downscale": args.anchor_downscale, "crop_margin": args.crop_margin}),
         Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",
               partial(stage_train, args, p, train_cfg), {"inputs": args.inputs, **train_options}),
         Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
@@ -301,6 +321,12 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
                    help="run SfM on the training video rendered again at this square size (a multiple of the "
                    "benchmark's), its inputs averaged down to the benchmark's frames: SfM registers the gnome-house "
                    "objects at 512 px, only the room at 64 (default: SfM on the benchmark's own frames)")
+    p.add_argument("--anchor-downscale", default="auto",
+                   help="SfM of the anchor (room) on the SfM video averaged down by this factor; auto: to at most "
+                   f"{ANCHOR_SFM_SIZE} px (2 at --sfm-resolution 1024: the room fills the frame and needs no more)")
+    p.add_argument("--crop-margin", default="auto",
+                   help="SIFT sees each object's frames cropped to its masks' box grown by this many pixels (-1: whole "
+                   f"frames); auto: {CROP_MARGIN} from {CROP_FROM} px up, whole frames below")
     p.add_argument("-n", type=int, default=1000, help="number of sampled configurations N")
     p.add_argument("--threshold", type=float, default=0.5, help="validity threshold of sampling")
     p.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth (0 = all)")

@@ -21,7 +21,7 @@ from osn.model.fields import Field, FieldConfig, make_field
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
-from osn.model.volume import ObjectRays, RenderOutput, ShadedSamples, render, shade
+from osn.model.volume import ObjectRays, RenderOutput, ShadedSamples, render_by_hits, shade
 
 #: Version of ``checkpoint.pt`` that ``osn train`` writes (2 added the scale phase's replay
 #: buffer). The first checkpoints carried no version key and are version 1; both hold the same
@@ -153,7 +153,7 @@ class TrainedRun:
                 dc = dirs[i : i + chunk]
                 R = len(dc)
                 rays = [anchor[c] if anchor and k == self.anchor_pos else self._object_rays(k, pose[k], R) for k in keep]
-                out: RenderOutput = render(rays, dc, S, None, bg, float(cfg.get("skip_occluded", 0.0)))
+                out: RenderOutput = render_by_hits(rays, dc, S, bg, float(cfg.get("skip_occluded", 0.0)))
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc
                 depth[i : i + R] = out.normalised_depth(EMPTY_ACC)

@@ -116,6 +116,25 @@ class ObjectRays:
     present: torch.Tensor
     t_range: torch.Tensor
 
+    def take(self, rows: torch.Tensor) -> "ObjectRays":
+        """The same object on the rays ``rows`` (indices into the batch)."""
+        return ObjectRays(self.field, self.cam_to_obj[rows], self.present[rows],
+                          self.t_range if self.t_range.dim() == 1 else self.t_range[rows])
+
+
+def _box_interval(obj: ObjectRays, dirs_cam: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Ray origin ``o (R, 3)`` and direction ``v (R, 3)`` in the object's frame, the interval
+    ``t0, t1 (R,)`` of ``t`` inside its box and depth range, and ``ok (R,)``: posed and hit."""
+    A = obj.cam_to_obj[:, :3, :3]
+    o = obj.cam_to_obj[:, :3, 3]
+    v = torch.einsum("rij,rj->ri", A, dirs_cam)
+    t0, t1 = ray_box(o, v, obj.field.bbox)
+    rng = obj.t_range.expand(dirs_cam.shape[0], 2)
+    t0 = torch.maximum(t0, rng[:, 0])
+    t1 = torch.minimum(t1, rng[:, 1])
+    return o, v, t0, t1, obj.present & (t1 > t0)
+
 
 def _object_samples(
     obj: ObjectRays, dirs_cam: torch.Tensor, n_samples: int, generator: torch.Generator | None
@@ -125,14 +144,7 @@ def _object_samples(
     ``delta_len`` is each sample's interval length in the object's own unit of length, so a
     field's opacity does not change when the object is scaled.
     """
-    A = obj.cam_to_obj[:, :3, :3]
-    o = obj.cam_to_obj[:, :3, 3]
-    v = torch.einsum("rij,rj->ri", A, dirs_cam)
-    t0, t1 = ray_box(o, v, obj.field.bbox)
-    rng = obj.t_range.expand(dirs_cam.shape[0], 2)
-    t0 = torch.maximum(t0, rng[:, 0])
-    t1 = torch.minimum(t1, rng[:, 1])
-    ok = obj.present & (t1 > t0)
+    o, v, t0, t1, ok = _box_interval(obj, dirs_cam)
     t1 = torch.where(ok, t1, t0)  # zero-length interval where missed: all samples collapse
     R = dirs_cam.shape[0]
     if generator is None:
@@ -167,6 +179,17 @@ class ShadedSamples:
     tau: torch.Tensor
     col: torch.Tensor
     skip_occluded: float
+
+    def take(self, rows: torch.Tensor) -> "ShadedSamples":
+        """The samples of the rays ``rows`` (indices into the batch)."""
+        return ShadedSamples(self.t[rows], self.tau[rows], self.col[rows], self.skip_occluded)
+
+
+def object_hits(obj: ObjectRays | ShadedSamples, dirs_cam: torch.Tensor) -> torch.Tensor:
+    """``(R,)`` bool: the rays on which the object has samples (posed there, its box hit)."""
+    if isinstance(obj, ShadedSamples):
+        return torch.isfinite(obj.t[:, 0])  # a missed ray's samples all lie at +inf
+    return _box_interval(obj, dirs_cam)[4]
 
 
 def _optical_thickness(obj: ObjectRays, samples: tuple, keep: torch.Tensor) -> torch.Tensor:
@@ -326,3 +349,51 @@ def render(
         keep = _visible(objects, samples, keep, order, skip_occluded)
     shaded = [_shade_kept(obj, smp, m) for obj, smp, m in zip(objects, samples, keep)]
     return _composite([x[0] for x in shaded], [x[1] for x in shaded], t_all, order, bg, with_distortion)
+
+
+@torch.no_grad()
+def render_by_hits(
+    objects: Sequence[ObjectRays | ShadedSamples],
+    dirs_cam: torch.Tensor,
+    n_samples: int,
+    background: torch.Tensor | None = None,
+    skip_occluded: float = 0.0,
+) -> RenderOutput:
+    """:func:`render` (deterministic, no gradients) with each ray composited from the objects it
+    hits only: rays are grouped by the set of objects whose box they cross, and each group is
+    rendered with that set. An object a ray misses adds only samples at ``+inf`` with no density,
+    which sort behind the others and add zeros to every sum, so the colour, opacity and depth are
+    those of :func:`render` to float rounding (sums over fewer terms; 6e-8 in colour on the demo,
+    bit for bit for one object alone), at a cost that follows the
+    samples that can contribute: a small object alone in a view covers a few per cent of the rays,
+    and most rays of a composite hit the anchor alone.
+
+    ``log_seg (R, K)`` is each object's log share of the weights among the objects the ray hits
+    and ``-inf`` for the others (:func:`render` floors every share at ``SEG_EPS`` instead); its
+    argmax is :func:`render`'s wherever some object holds a share above ``SEG_EPS``. A ray that
+    hits nothing gets the background, opacity and depth 0.
+    """
+    R, K = dirs_cam.shape[0], len(objects)
+    dev = dirs_cam.device
+    bg = background if background is not None else torch.zeros(3, device=dev)
+    rgb = bg.expand(R, 3).clone()
+    depth = torch.zeros(R, device=dev)
+    acc = torch.zeros(R, device=dev)
+    log_seg = torch.full((R, K), -float("inf"), device=dev)
+    if K == 0 or R == 0:
+        return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)
+    hits = torch.stack([object_hits(obj, dirs_cam) for obj in objects], 1)  # (R, K)
+    if K < 63:  # each ray's set of objects as one integer: unique over rows is ~50x slower
+        sets, group = torch.unique((hits.long() << torch.arange(K, device=dev)).sum(1), return_inverse=True)
+        members = [[k for k in range(K) if c >> k & 1] for c in sets.tolist()]
+    else:
+        sets, group = torch.unique(hits, dim=0, return_inverse=True)
+        members = [row.nonzero().flatten().tolist() for row in sets]
+    for g, ks in enumerate(members):
+        if not ks:  # hits nothing: the background
+            continue
+        rows = (group == g).nonzero().flatten()
+        out = render([objects[k].take(rows) for k in ks], dirs_cam[rows], n_samples, None, bg, skip_occluded)
+        rgb[rows], depth[rows], acc[rows] = out.rgb, out.depth, out.acc
+        log_seg[rows[:, None], torch.tensor(ks, device=dev)[None, :]] = out.log_seg
+    return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)

@@ -279,6 +279,23 @@ def test_deterministic_and_resumable(tiny, tmp_path):
     _assert_same_tree(tiny, again)
 
 
+def test_video_only_writes_the_training_video_and_the_rest_follows(tiny, tmp_path):
+    """`--video-only` (SfM's video at another resolution): the training frames, byte for byte
+    those of a full generation, and nothing else; generating without it finishes the dataset."""
+    out = tmp_path / "video"
+    assert cli_main(["generate", "--preset", "tiny", "--out", str(out), "--video-only", "--quiet"]) == 0
+    scene = D.load_scene(out)
+    train = sorted(p for p in _tree(tiny) if p.parts[0] == "train")
+    assert sorted(p for p in _tree(out) if p.parts[0] == "train") == train and len(train) == 3 * len(scene.train_frames)
+    _, mismatch, errors = filecmp.cmpfiles(tiny, out, [str(f) for f in train], shallow=False)
+    assert not mismatch and not errors
+    assert not any((out / n).exists() for n in ("configs", "valid_region.json", "verification.json"))
+    assert generate(load_preset("tiny"), out, progress=False, video_only=True).frames_rendered == 0  # resumed: done
+    summary = generate(load_preset("tiny"), out, progress=False)
+    assert summary.passed
+    _assert_same_tree(tiny, out)
+
+
 def test_resume_after_killing_parallel_run(tiny, tmp_path):
     out = tmp_path / "killed"
     spec = load_preset("tiny").with_overrides(configs=3)

@@ -30,7 +30,8 @@ def test_sfm_runs_on_the_larger_video_and_trains_on_the_benchmark_frames(tmp_pat
     stage_sfm_video(args, p)
     big = D.load_scene(p.sfm_video)
     assert big.width == 128 and len(big.train_frames) == len(D.load_scene(p.dataset).train_frames)
-    assert len(D.load_scene(p.sfm_video).test_frames) == 1  # only its training video is needed
+    # Only its training video is needed: no region, configurations or verification rendered.
+    assert not any((p.sfm_video / n).exists() for n in ("configs", "valid_region.json", "verification.json"))
     record = stage_preprocess(args, p)
     sfm, oracle = load_inputs(p.sfm), load_inputs(p.oracle)
     # Registered at 128 px (the room within a degree), delivered at the benchmark's 32 px with its intrinsics.

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import minority_pairs, order_constraints, trimmed_labels
-from osn.model.volume import ObjectRays, distortion, ray_box, render, shade, transmittance_weights
+from osn.model.volume import ObjectRays, distortion, object_hits, ray_box, render, render_by_hits, shade, transmittance_weights
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -201,6 +201,38 @@ def test_shaded_samples_render_like_the_object_they_cache(skip: float) -> None:
         render([shade(objs[0], dirs, S, 1e-2), *objs[1:]], dirs, S, skip_occluded=1e-3)  # colour missing where needed
     with pytest.raises(ValueError, match="shaded samples"):
         render([shade(objs[0], dirs, S), *objs[1:]], dirs, S + 1)
+
+
+@pytest.mark.parametrize("skip", [0.0, 1e-3])
+def test_render_by_hits_equals_render_on_every_ray(skip: float) -> None:
+    """Evaluation renders each ray with only the objects whose box it crosses: colour, opacity,
+    depth and the segmentation's argmax must be the full composite's, on rays that hit no
+    object, one, or several overlapping ones, with a cached (shaded) object among them."""
+    n, S = 400, 16
+    g = torch.Generator().manual_seed(5)
+    dirs = torch.cat([0.5 * (2 * torch.rand(n, 2, generator=g) - 1), torch.ones(n, 1)], 1)  # a wide cone
+    objs = []
+    for x, y, z, scale in ((0.0, 0.0, 12.0, 1.0), (-1.2, 0.3, 4.0, 0.7), (0.8, -0.6, 5.0, 1.2), (0.9, -0.4, 7.0, 0.8)):
+        f = DenseGridField(BOX, 6)
+        with torch.no_grad():
+            f.grid.copy_(torch.randn(f.grid.shape, generator=g) * 2.0)
+            f.grid[:, 0] = f.grid[:, 0] * 2.0 + 3.0
+        P = torch.eye(4)
+        P[:3, 3] = -torch.tensor([x, y, z]) / scale
+        P[:3, :3] /= scale
+        objs.append(ObjectRays(f, P.expand(n, 4, 4), torch.ones(n, dtype=torch.bool), torch.tensor([1e-3, 1e6])))
+    objs[2] = ObjectRays(objs[2].field, objs[2].cam_to_obj, torch.arange(n) % 5 > 0, objs[2].t_range)  # unposed on some rays
+    objs[0] = shade(objs[0], dirs, S, skip)  # the anchor of evaluation: cached
+    hits = torch.stack([object_hits(o, dirs) for o in objs], 1)
+    assert {0, 1, 2, 3} <= set(hits.sum(1).tolist())  # rays that miss everything, hit one, two and three objects
+    ref = render(objs, dirs, S, skip_occluded=skip)
+    out = render_by_hits(objs, dirs, S, skip_occluded=skip)
+    for a, b in ((ref.rgb, out.rgb), (ref.depth, out.depth), (ref.acc, out.acc)):
+        assert torch.allclose(a, b, atol=1e-6, rtol=0)
+    assert torch.equal(torch.isinf(out.log_seg), ~hits)
+    seen = ref.acc > 0.5
+    assert seen.sum() > n // 4 and torch.equal(ref.log_seg.argmax(1)[seen], out.log_seg.argmax(1)[seen])
+    assert torch.all(out.acc[~hits.any(1)] == 0)
 
 
 @SETTINGS
