@@ -273,7 +273,8 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
                             partial(stage_sfm_video, args, p), {"preset": args.preset, "sfm_resolution": args.sfm_resolution}))
     stages += [
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p),
-              {"sfm_resolution": args.sfm_resolution, "anchor_downscale": args.anchor_downscale, "crop_margin": args.crop_margin}),
+              {k: v for k, v in (("sfm_resolution", args.sfm_resolution), ("anchor_downscale", args.anchor_downscale),
+                                 ("crop_margin", args.crop_margin)) if v not in (None, "auto")}),  # as older runs recorded
         Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",
               partial(stage_train, args, p, train_cfg), {"inputs": args.inputs, **train_options}),
         Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
