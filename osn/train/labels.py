@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
-from osn.model.volume import render
+from osn.model.volume import render_by_hits
 from osn.train.config import TrainConfig, label_stride, resolve_anchor_coverage
 from osn.train.tensors import SceneTensors
 
@@ -71,7 +71,8 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
         idx = torch.nonzero(st.present[k, frames_all])[:, 0]  # absent frames cost nothing
         for a in range(0, len(idx), chunk):
             i = idx[a : a + chunk]
-            out = render(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.label_samples, None, None, cfg.skip_occluded)
+            # Only the rays that cross the object's box are rendered (the same values: one object alone).
+            out = render_by_hits(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.label_samples, None, cfg.skip_occluded)
             depth[i, k] = out.normalised_depth()
             acc[i, k] = out.acc
             covered[i, k] = out.acc > threshold
