@@ -235,6 +235,30 @@ def test_render_by_hits_equals_render_on_every_ray(skip: float) -> None:
     assert torch.all(out.acc[~hits.any(1)] == 0)
 
 
+def test_render_by_hits_groups_rays_with_more_objects_than_an_integer_has_bits() -> None:
+    """70 objects (the ray's set no longer fits one 63-bit integer: rows are grouped directly):
+    still every ray equals the full composite, and rays see different subsets. Depths are drawn at
+    random: two objects with a sample at exactly the same depth have no defined order, in
+    :func:`render` either."""
+    n, S, K = 120, 4, 70
+    g = torch.Generator().manual_seed(7)
+    dirs = torch.cat([0.3 * (2 * torch.rand(n, 2, generator=g) - 1), torch.ones(n, 1)], 1)
+    objs = []
+    for k in range(K):
+        f = _solid(DenseGridField(BOX, 2), 2.0, (k / K, 0.5, 1.0 - k / K))
+        P = torch.eye(4)
+        P[:3, 3] = -torch.tensor([float(torch.rand(1, generator=g)) * 6 - 3, float(torch.rand(1, generator=g)) * 6 - 3, 8.0 + 4.0 * float(torch.rand(1, generator=g))])
+        P[:3, :3] /= 0.8  # boxes 1.6 wide: a ray crosses none, one or a few
+        P[:3, 3] /= 0.8
+        objs.append(ObjectRays(f, P.expand(n, 4, 4), torch.ones(n, dtype=torch.bool), torch.tensor([1e-3, 1e6])))
+    hits = torch.stack([object_hits(o, dirs) for o in objs], 1)
+    assert len(torch.unique(hits, dim=0)) > 10 and hits.any(1).sum() > n // 2 and (~hits.any(1)).any()
+    ref, out = render(objs, dirs, S), render_by_hits(objs, dirs, S)
+    for a, b in ((ref.rgb, out.rgb), (ref.depth, out.depth), (ref.acc, out.acc)):
+        assert torch.allclose(a, b, atol=1e-6, rtol=1e-6)  # depths ~10: float32 rounding is relative
+    assert torch.equal(torch.isinf(out.log_seg), ~hits)
+
+
 @SETTINGS
 @given(
     sig=st.lists(st.one_of(st.floats(0, 1e38), st.just(float("inf"))), min_size=1, max_size=40),
