@@ -146,29 +146,44 @@ def stage_generate(args: argparse.Namespace, p: DemoPaths) -> dict:
     return _generate(_demo_spec(args, args.resolution, args.configs), p.dataset, args)
 
 
+#: ``--sfm-resolution auto`` with ``--inputs colmap``: the training video rendered again at this
+#: size (rounded up to a multiple of the benchmark's) for SfM. At 768 px every gnome-house object
+#: registers in at least 14 of 15 frames (the ring-toy's first frame is the one left; at 512 px
+#: its first three) and the valid set trained from it is within the targets (docs/preprocess.md).
+SFM_SIZE = 768
+
+
+def sfm_width(args: argparse.Namespace, dataset_width: int) -> int:
+    """Width of the frames SfM runs on: ``--sfm-resolution``; ``auto`` is the benchmark's own frames
+    with oracle inputs (SfM is then only a record) and :data:`SFM_SIZE` with SfM inputs."""
+    r = args.sfm_resolution
+    if r in (None, "auto"):
+        return -(-SFM_SIZE // dataset_width) * dataset_width if args.inputs == "colmap" else dataset_width
+    if r < dataset_width or r % dataset_width:
+        raise UserError(f"--sfm-resolution {r} must be a multiple of the benchmark's {dataset_width} px "
+                        "(the SfM inputs are averaged down to its frames)")
+    return r
+
+
 def sfm_downscale(args: argparse.Namespace, dataset_width: int) -> int:
     """How many times larger the SfM video is than the benchmark's frames (1: SfM on them)."""
-    if not args.sfm_resolution or args.sfm_resolution == dataset_width:
-        return 1
-    if args.sfm_resolution < dataset_width or args.sfm_resolution % dataset_width:
-        raise UserError(f"--sfm-resolution {args.sfm_resolution} must be a multiple of the benchmark's {dataset_width} px "
-                        "(the SfM inputs are averaged down to its frames)")
-    return args.sfm_resolution // dataset_width
+    return sfm_width(args, dataset_width) // dataset_width
 
 
-def stage_sfm_video(args: argparse.Namespace, p: DemoPaths) -> dict:
-    """The training video again at ``--sfm-resolution`` (the same scene; the video alone: SfM
+def stage_sfm_video(args: argparse.Namespace, p: DemoPaths, width: int) -> dict:
+    """The training video again at ``width`` px for SfM (the same scene; the video alone: SfM
     reads only its frames and masks, its ground truth only measures SfM's accuracy)."""
-    return _generate(_demo_spec(args, args.sfm_resolution, None), p.sfm_video, args, video_only=True)
+    return _generate(_demo_spec(args, width, None), p.sfm_video, args, video_only=True)
 
 
 #: The demo's SfM of the anchor runs on frames of at most this size (``--anchor-downscale auto``):
 #: the room fills the frame and registers within 0.1 degree at 512 px (docs/preprocess.md).
 ANCHOR_SFM_SIZE = 512
 #: ``--crop-margin auto``: crops from this SfM resolution up, whole frames below (at 512 px crops
-#: moved the ring-toy's worst frame from 2.96 to 4.97 degrees; at 1024 they cost nothing and cut
-#: SfM from 377 to 231 s: docs/preprocess.md).
-CROP_FROM, CROP_MARGIN = 1024, 32
+#: moved the ring-toy's worst frame from 2.96 to 4.97 degrees; at 768 they register its frame 1,
+#: which whole frames do not; at 1024 they cost nothing and cut SfM from 377 to 231 s:
+#: docs/preprocess.md).
+CROP_FROM, CROP_MARGIN = 768, 32
 
 
 def demo_preprocess_config(args: argparse.Namespace, sfm_width: int) -> PreprocessConfig:
@@ -259,8 +274,8 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     """Run (or resume) every stage under ``args.work``; returns the stage records."""
     p = DemoPaths(Path(args.work))
     width = _demo_spec(args, args.resolution, args.configs).width
-    sfm_factor = sfm_downscale(args, width)  # a bad one stops here, before rendering
-    demo_preprocess_config(args, width * sfm_factor)  # so do bad SfM options
+    sfm_px = sfm_width(args, width)  # a bad one stops here, before rendering
+    demo_preprocess_config(args, sfm_px)  # so do bad SfM options
     train_cfg = _scaled_config(args.iterations, args.train_config)  # also what the train stage depends on
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
@@ -268,13 +283,14 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         Stage("generate", f"benchgen: render the {args.preset} benchmark", partial(stage_generate, args, p),
               {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}),
     ]
-    if sfm_factor > 1:
-        stages.append(Stage("sfm-video", f"benchgen: render the training video at {args.sfm_resolution} px for SfM",
-                            partial(stage_sfm_video, args, p), {"preset": args.preset, "sfm_resolution": args.sfm_resolution}))
+    sfm_res = sfm_px if sfm_px > width else None  # recorded as older runs did: only a separate SfM video's
+    if sfm_res:
+        stages.append(Stage("sfm-video", f"benchgen: render the training video at {sfm_px} px for SfM",
+                            partial(stage_sfm_video, args, p, sfm_px), {"preset": args.preset, "sfm_resolution": sfm_px}))
     stages += [
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p),
-              {k: v for k, v in (("sfm_resolution", args.sfm_resolution), ("anchor_downscale", args.anchor_downscale),
-                                 ("crop_margin", args.crop_margin)) if v not in (None, "auto")}),  # as older runs recorded
+              {k: v for k, v in (("sfm_resolution", sfm_res), ("anchor_downscale", args.anchor_downscale),
+                                 ("crop_margin", args.crop_margin)) if v not in (None, "auto")}),
         Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",
               partial(stage_train, args, p, train_cfg), {"inputs": args.inputs, **train_options}),
         Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
@@ -304,6 +320,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _auto_or_int(v: str) -> str | int:
+    if v == "auto":
+        return v
+    try:
+        return int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"auto or an integer, not {v!r}") from None
+
+
 def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     p = subcommand(sub, "demo", _cmd_demo, "run the whole pipeline on the embedded Gnome-House scene (resumable)",
                    description="Generate the benchmark, preprocess (SfM + oracle), train, sample N configurations, "
@@ -316,12 +341,14 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=int, default=None,
                    help="field iterations in total (stage 1 + rounds); every phase is scaled (default: the CPU config's)")
     p.add_argument("--train-config", help="YAML training config (default: the built-in CPU config)")
-    p.add_argument("--inputs", choices=["oracle", "colmap"], default="oracle",
-                   help="train on oracle per-object inputs (perfect SfM) or on the pycolmap output")
-    p.add_argument("--sfm-resolution", type=int, default=None,
+    p.add_argument("--inputs", choices=["oracle", "colmap"], default="colmap",
+                   help="train on the pycolmap output (the method as published) or on oracle per-object inputs "
+                   "(ground-truth poses and depths: an ablation, labelled so in the report)")
+    p.add_argument("--sfm-resolution", type=_auto_or_int, default="auto",
                    help="run SfM on the training video rendered again at this square size (a multiple of the "
-                   "benchmark's), its inputs averaged down to the benchmark's frames: SfM registers the gnome-house "
-                   "objects at 512 px, only the room at 64 (default: SfM on the benchmark's own frames)")
+                   "benchmark's), its inputs averaged down to the benchmark's frames: SfM registers only the room at "
+                   f"64 px; auto: {SFM_SIZE} px with --inputs colmap (every gnome-house object in >= 14 of 15 frames), "
+                   "the benchmark's own frames with --inputs oracle")
     p.add_argument("--anchor-downscale", default="auto",
                    help="SfM of the anchor (room) on the SfM video averaged down by this factor; auto: to at most "
                    f"{ANCHOR_SFM_SIZE} px (2 at --sfm-resolution 1024: the room fills the frame and needs no more)")

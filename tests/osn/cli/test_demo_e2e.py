@@ -15,7 +15,8 @@ from scenecore import export_format as osn_core
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]
-DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--iterations", "150", "-n", "60", "--max-views", "3", "--workers", "1"]
+DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs", "oracle", "--iterations", "150", "-n", "60",
+        "--max-views", "3", "--workers", "1"]
 
 
 @pytest.fixture(scope="module")

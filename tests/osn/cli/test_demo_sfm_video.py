@@ -27,7 +27,7 @@ def test_sfm_runs_on_the_larger_video_and_trains_on_the_benchmark_frames(tmp_pat
     args = _args(tmp_path, "--sfm-resolution", "128", "--inputs", "colmap")
     p = DemoPaths(tmp_path)
     stage_generate(args, p)
-    stage_sfm_video(args, p)
+    stage_sfm_video(args, p, 128)
     big = D.load_scene(p.sfm_video)
     assert big.width == 128 and len(big.train_frames) == len(D.load_scene(p.dataset).train_frames)
     # Only its training video is needed: no region, configurations or verification rendered.
@@ -44,6 +44,18 @@ def test_sfm_runs_on_the_larger_video_and_trains_on_the_benchmark_frames(tmp_pat
     assert max(len(d) for o in sfm.objects for d in o.sparse_depth) <= 256
     np.testing.assert_allclose(sfm.K, oracle.K, atol=1e-9)
     assert sfm.world_to_anchor is not None  # test views of the 32 px benchmark reach the anchor's frame
+
+
+def test_sfm_resolution_auto_follows_the_inputs() -> None:
+    """SfM inputs get their own video at SFM_SIZE (a multiple of the benchmark's width); the oracle
+    ablation runs SfM on the benchmark's frames, as a record only."""
+    from osn.cli.demo import SFM_SIZE, sfm_width
+    assert sfm_width(_args(Path("w")), 64) == SFM_SIZE == 768  # the default: SfM inputs
+    assert sfm_width(_args(Path("w"), "--inputs", "oracle"), 64) == 64
+    assert sfm_width(_args(Path("w")), 100) == 800  # rounded up to a multiple
+    assert sfm_width(_args(Path("w"), "--sfm-resolution", "512"), 64) == 512
+    with pytest.raises(SystemExit):
+        _args(Path("w"), "--sfm-resolution", "big")
 
 
 def test_sfm_resolution_must_be_a_multiple_of_the_benchmark_frames(tmp_path: Path) -> None:

@@ -52,6 +52,30 @@ def test_trilinear_matches_grid_sample() -> None:
     assert torch.allclose(ours, ref, atol=1e-5)
 
 
+def test_dense_field_without_autograd_equals_the_gather_and_follows_every_change() -> None:
+    """Evaluation's lookups (grid_sample on a cached channels-first copy) give what training's
+    gather gives, also after an optimiser step and a resolution change replace the grid."""
+    g = torch.Generator().manual_seed(0)
+    f = DenseGridField(BOX, 9)
+    with torch.no_grad():
+        f.grid.normal_(generator=g)
+    x = torch.rand(400, 3, generator=g) * 2.4 - 1.2  # some outside the box, clamped by both
+    dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=-1)
+    opt = torch.optim.SGD([f.grid], lr=0.5)
+    for step in range(3):
+        sigma, rgb = f.density_and_color(x, dirs)  # autograd on: the gather
+        with torch.no_grad():
+            fs, frgb = f.density_and_color(x, dirs)
+            assert torch.allclose(fs, sigma, atol=1e-6) and torch.allclose(frgb, rgb, atol=1e-6)
+            assert torch.allclose(f.density(x), sigma, atol=1e-6) and torch.allclose(f.color(x, dirs), rgb, atol=1e-6)
+        opt.zero_grad()
+        (sigma.sum() + rgb.sum()).backward()
+        opt.step()  # in place: the cached copy must be made again
+        if step == 1:
+            f.set_resolution(13)
+    assert f.resolution == 13
+
+
 @pytest.mark.parametrize("kind", ["dense", "tensorf"])
 def test_set_resolution_keeps_the_field(kind: str) -> None:
     f = make_field(FieldConfig(kind=kind, resolution=12, initial_resolution=12), BOX, seed=1)
