@@ -49,7 +49,7 @@ TIMING = re.compile(r"^(timings\..*|train_seconds|curves\.search_seconds_per_vie
 
 
 def demo_cmd(args: argparse.Namespace, work: Path) -> list[str]:
-    return [sys.executable, "-m", "osn.cli", "demo", "--preset", args.preset, *shlex.split(args.demo_args),
+    return [sys.executable, "-m", "osn.cli", "demo", "--preset", args.preset, "--inputs", "oracle", *shlex.split(args.demo_args),
             "--work", str(work)]
 
 

@@ -9,3 +9,70 @@ import sys
 def print_command() -> None:
     """Print ``command: python benchmarks/NAME.py ARGS`` (flushed, before any figure)."""
     print("command: " + shlex.join(["python", *sys.argv]), flush=True)
+
+
+def compare_renders(run, truth, sbar, modes, install) -> None:
+    """Print evaluation's two render workloads under two implementations, side by side.
+
+    ``modes``: ``[(name, impl), (name, impl)]``, the reference first; ``install(impl)`` makes
+    ``run.render_view`` use ``impl``. Per view of ``truth`` both workloads run under each mode in
+    turn, so machine noise hits both alike: candidates (whole configurations ``sbar (C, K)``, the
+    anchor shaded once per view: exact scoring) and layers (one object alone at a time: the
+    layered search). Prints seconds, their ratio and the largest difference of colour, opacity and
+    depth (over pixels both renders hit; a hole in one render only counts as inf).
+    """
+    import time
+
+    import numpy as np
+
+    free = [k for k in range(run.inputs.num_objects) if k != run.anchor_pos]
+    works = ("candidates", "layers")
+    seconds = {(w, m): 0.0 for w in works for m, _ in modes}
+    diff = {(w, key): 0.0 for w in works for key in ("rgb", "acc", "depth")}
+    for f in truth.frames:
+        for work in works:
+            out = {}
+            for mode, impl in modes:
+                install(impl)
+                t0 = time.perf_counter()
+                anchor = run.shade_anchor(f.camera_to_world, f.time_index) if work == "candidates" else None
+                out[mode] = [run.render_view(f.camera_to_world, f.time_index, s, anchor=anchor,
+                                             objects=None if work == "candidates" else [free[c % len(free)]])
+                             for c, s in enumerate(sbar)]
+                seconds[(work, mode)] += time.perf_counter() - t0
+            for a, b in zip(*(out[m] for m, _ in modes)):
+                for key in ("rgb", "acc", "depth"):
+                    finite = np.isfinite(a[key])
+                    if not np.array_equal(finite, np.isfinite(b[key])):
+                        diff[(work, key)] = float("inf")
+                    elif finite.any():
+                        diff[(work, key)] = max(diff[(work, key)], float(np.max(np.abs(a[key][finite] - b[key][finite]))))
+    install(modes[1][1])
+    (ref, _), (new, _) = modes
+    print(f"{len(truth.frames) * len(sbar)} renders per workload ({len(truth.frames)} views x {len(sbar)} configurations)")
+    print(f"| workload | {ref} | {new} | ratio | largest difference: colour / opacity / depth |")
+    print("|---|---|---|---|---|")
+    for work in works:
+        a, b = seconds[(work, ref)], seconds[(work, new)]
+        d = " / ".join(f"{diff[(work, key)]:.1e}" for key in ("rgb", "acc", "depth"))
+        print(f"| {work} | {a:.2f} s | {b:.2f} s | {a / b:.2f}x | {d} |")
+
+
+def render_bench_inputs(doc: str):
+    """Parse ``RUN DATASET [--views V] [--configs C]``, print the command, and return the trained run,
+    V test views of the dataset spread over it and C configurations sampled from the run."""
+    import argparse
+
+    from benchgen.score.truth import load_truth
+    from osn.model.run import load_run
+    from osn.sample.configurations import sample_configurations
+
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run", help="osn train run directory")
+    ap.add_argument("dataset", help="its benchgen dataset (test views)")
+    ap.add_argument("--views", type=int, default=10, help="test views, evenly spread")
+    ap.add_argument("--configs", type=int, default=10, help="sampled configurations rendered per view")
+    args = ap.parse_args()
+    print_command()
+    run = load_run(args.run)
+    return run, load_truth(args.dataset, args.views), sample_configurations(run, args.configs, 0.5, 0).sbar
