@@ -675,7 +675,8 @@ def test_rendered_depth_is_infinite_where_nothing_is_hit(trained: Path) -> None:
 
 def test_candidates_rendered_view_by_view_equal_single_renders(trained: Path, tiny_dataset: Path) -> None:
     """Evaluation renders candidates view by view and shades the anchor once per view for all of
-    them: every candidate's colour, depth and ids equal its own ``render_view`` in every view."""
+    them: every candidate's colour, depth and ids equal its own ``render_view`` in every view;
+    rendered with views on two threads, exactly what one thread gives."""
     from benchgen.score.truth import load_truth
     from osn.evaluate.exact import render_candidates
     from osn.model.run import load_run
@@ -691,6 +692,16 @@ def test_candidates_rendered_view_by_view_equal_single_renders(trained: Path, ti
         assert np.array_equal(cand.ids, np.stack([v["ids"] for v in single]))
         ref = np.stack([v["depth"] for v in single])
         assert np.array_equal(np.isinf(cand.depth), np.isinf(ref)) and np.allclose(cand.depth[np.isfinite(ref)], ref[np.isfinite(ref)], atol=1e-5)
+    # Views on two threads (one intra-op thread each) give exactly what one thread alone gives.
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        alone = render_candidates(run, truth.frames, sbars)
+        torch.set_num_threads(2)
+        for a, b in zip(alone, render_candidates(run, truth.frames, sbars)):
+            assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth) and np.array_equal(a.ids, b.ids)
+    finally:
+        torch.set_num_threads(before)
     anchor = run.shade_anchor(truth.frames[0].camera_to_world, truth.frames[0].time_index)
     off = sbars[1].copy()
     off[run.anchor_pos] = 2.0

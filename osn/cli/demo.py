@@ -220,7 +220,7 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
     try:
         cfg = demo_preprocess_config(args, scene.width * factor)
         inputs, report = preprocess_dataset(sfm_source, cfg, progress=lambda m: print(f"  {m} ...", flush=True),
-                                            video=video if factor == 1 else None)
+                                            video=video if factor == 1 else None, workers=args.workers)
         inputs = training_inputs(inputs, factor, cfg)
     except InputsError as e:
         if args.inputs == "colmap":
@@ -359,5 +359,6 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-n", type=int, default=1000, help="number of sampled configurations N")
     p.add_argument("--threshold", type=float, default=0.5, help="validity threshold of sampling")
     p.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth (0 = all)")
-    p.add_argument("--workers", type=int, default=2, help="rendering processes for benchgen")
+    p.add_argument("--workers", type=int, default=2,
+                   help="rendering processes for benchgen, and objects reconstructed at once by SfM (results do not depend on it)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampled configurations (the export carries those)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -37,6 +38,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         )
     except ValueError as e:
         raise UserError(f"osn preprocess: {e}") from None
+    if args.workers < 1:
+        raise UserError(f"osn preprocess: --workers must be >= 1, got {args.workers}")
     if args.work_dir and Path(args.work_dir).exists() and any(Path(args.work_dir).iterdir()):
         raise UserError(f"{args.work_dir}: --work-dir exists and is not empty; name a new directory")
     t0 = time.perf_counter()
@@ -47,7 +50,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             raise UserError(f"{src} is a benchgen dataset: its instance masks are used, drop --masks")
         scene = load_scene(src)
         _check_downscale(src, scene.width, scene.height, args.downscale)
-        inputs, report = preprocess_dataset(src, cfg, progress, work_dir=args.work_dir)
+        inputs, report = preprocess_dataset(src, cfg, progress, work_dir=args.work_dir, workers=args.workers)
     else:
         inputs, report = _preprocess_frames(src, args, cfg, progress)
     try:
@@ -86,7 +89,7 @@ def _preprocess_frames(
     T = len(images)
     inputs, report = preprocess_video(
         images, masks, K, np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1), {i: f"object{i}" for i in ids},
-        anchor, cfg, progress, args.work_dir,
+        anchor, cfg, progress, args.work_dir, args.workers,
     )
     inputs.meta["frames"] = names
     return inputs, report
@@ -145,3 +148,6 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="an object that fails to register: stop with its message, or train without it")
     p.add_argument("--seed", type=int, default=0,
                    help="every pycolmap random seed, and the seed of the sparse-depth subsampling")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="objects reconstructed at once, each on one core (default: this machine's cores, "
+                   "here %(default)s); the result does not depend on it")

@@ -17,6 +17,7 @@ from scenecore import dataset as D
 from scenecore.atomic import atomic_write_json
 from benchgen.score.predictions import SUFFIX, Candidate, check_candidate
 from benchgen.score.truth import Truth
+from osn.model.parallel import map_views
 from osn.model.run import TrainedRun
 
 
@@ -25,19 +26,19 @@ def render_candidates(
 ) -> list[Candidate]:
     """Composite volume renders of configurations ``sbars`` (each ``(K,)``) on ``frames``.
 
-    View by view, so the anchor (at scale 1 in every configuration) is shaded once per view and
-    reused by every configuration: the renders are those of :meth:`TrainedRun.render_view`.
+    View by view (views side by side on CPU threads, :func:`osn.model.parallel.map_views`), so the
+    anchor (at scale 1 in every configuration) is shaded once per view and reused by every
+    configuration: the renders are those of :meth:`TrainedRun.render_view`.
     Returns per configuration ``rgb (V, H, W, 3)`` float32 in [0, 1], ``depth (V, H, W)`` planar
     (``+inf`` where nothing is hit), ``ids (V, H, W)`` uint8, as a
     :class:`~benchgen.score.predictions.Candidate`.
     """
-    from tqdm import tqdm
-
-    views: list[list[dict]] = [[] for _ in sbars]
-    for f in tqdm(frames, desc=f"rendering {len(sbars)} candidates", disable=not progress or not sbars, dynamic_ncols=True):
+    def view(f: D.Frame) -> list[dict]:
         anchor = run.shade_anchor(f.camera_to_world, f.time_index)
-        for c, sbar in enumerate(sbars):
-            views[c].append(run.render_view(f.camera_to_world, f.time_index, sbar, anchor=anchor))
+        return [run.render_view(f.camera_to_world, f.time_index, sbar, anchor=anchor) for sbar in sbars]
+
+    per_view = map_views(view, frames, run.device, f"rendering {len(sbars)} candidates" if progress and sbars else None)
+    views = [[v[c] for v in per_view] for c in range(len(sbars))]
     return [Candidate(rgb=np.clip(np.stack([v["rgb"] for v in vs]), 0.0, 1.0).astype(np.float32),
                       depth=np.stack([v["depth"] for v in vs]).astype(np.float32),
                       ids=np.stack([v["ids"] for v in vs]).astype(np.uint8)) for vs in views]

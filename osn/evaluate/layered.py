@@ -17,6 +17,7 @@ import torch
 from scenecore import dataset as D
 from benchgen.score import metrics as M
 from benchgen.score.truth import Truth
+from osn.model.parallel import map_views
 from osn.model.run import TrainedRun
 from osn.sample.configurations import Samples
 
@@ -95,20 +96,22 @@ def masked_mse_matrix(images: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor
 def layered_psnr(
     run: TrainedRun, samples: Samples, truth: Truth, levels: int, chunk: int = 64, echo: Callable[[str], None] | None = None
 ) -> np.ndarray:
-    """Approximate PSNR ``(N, G, V)`` of every sample against every ground-truth view (co-visible pixels)."""
-    from tqdm import tqdm
-
+    """Approximate PSNR ``(N, G, V)`` of every sample against every ground-truth view (co-visible pixels);
+    views side by side on CPU threads (:func:`osn.model.parallel.map_views`)."""
     N, G, V = len(samples.sbar), truth.num_configurations, truth.num_views
     grids = scale_levels(samples.sbar, levels)
     idx = np.stack([nearest_level(samples.sbar[:, k], grids[k]) for k in range(samples.sbar.shape[1])], 1)
     bg = np.asarray(run.config.get("background", (0.0, 0.0, 0.0)))
     base = np.array([g[0] for g in grids])
     out = np.full((N, G, V), np.nan)
-    for v in tqdm(range(V), desc="layered search", disable=echo is None, dynamic_ncols=True):
+
+    def view(v: int) -> None:  # fills out[:, :, v], a slice no other view writes
         layers = render_layers(run, truth.frames[v], grids, base)
         y = torch.from_numpy(truth.masked_rgb[v].reshape(G, -1, 3)).double() / 255.0  # view-major: no copy
         m = torch.from_numpy(truth.mask[v])
         for i in range(0, N, chunk):
             imgs = composite_layers(layers, idx[i : i + chunk], bg)
             out[i : i + chunk, :, v] = M.psnr_from_mse(masked_mse_matrix(imgs, y, m).numpy())
+
+    map_views(view, list(range(V)), run.device, "layered search" if echo is not None else None)
     return out

@@ -11,6 +11,8 @@ truth (:mod:`osn.preprocess.alignment`).
 from __future__ import annotations
 
 import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -48,6 +50,7 @@ def preprocess_video(
     cfg: PreprocessConfig,
     progress: Callable[[str], None] | None = None,
     work_dir: str | Path | None = None,
+    workers: int = 1,
 ) -> tuple[SceneInputs, PreprocessReport]:
     """Per-object SfM for a whole video; returns inputs (SfM frames and units) and a report.
 
@@ -56,27 +59,50 @@ def preprocess_video(
     ``cfg.on_failure`` is ``stop`` or it is the ``anchor``; otherwise it is dropped (its pixels
     become ``IGNORE_ID``) and the report says why. ``work_dir`` keeps each object's COLMAP
     working directory as ``work_dir/object_<id>`` (:func:`object_work_dir`) for inspection.
+    ``workers``: objects reconstructed at once, on threads (pycolmap releases the GIL; each
+    object's SfM is single-threaded and seeded, so the result does not depend on it).
     """
     T, H, W = masks.shape
     check_downscale(W, H, cfg.anchor_downscale)  # before SfM, which costs minutes
     report = PreprocessReport()
     objects: list[ObjectInputs] = []
-    for oid, name in sorted(object_names.items()):
+
+    said = threading.Lock()  # one progress line at a time from the workers
+
+    def sfm_of(oid: int, name: str) -> ObjectSfM | ObjectRegistrationError:
         if progress:
-            progress(f"SfM of object {oid} ({name})")
+            with said:
+                progress(f"SfM of object {oid} ({name})")
         f = cfg.anchor_downscale if oid == anchor else 1
         try:
             imgs, msks, Ko = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
             sfm = reconstruct_object(imgs, msks, oid, Ko, cfg, name,
                                      object_work_dir(work_dir, oid) if work_dir is not None else None)
-            if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones
-                sfm.sparse_pix = [p * f + f // 2 for p in sfm.sparse_pix]
         except ObjectRegistrationError as e:
-            if cfg.on_failure == "stop" or oid == anchor:
-                raise
-            log.warning("%s -- training without it", e)
+            return e
+        if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones
+            sfm.sparse_pix = [p * f + f // 2 for p in sfm.sparse_pix]
+        return sfm
+
+    # The anchor first: it is usually the largest object (whole frames), so the others share
+    # the remaining workers meanwhile, and a failure of it (which stops everything) comes early.
+    order = sorted(object_names.items(), key=lambda item: (item[0] != anchor, item[0]))
+    pool = ThreadPoolExecutor(max(1, min(workers, len(order))), thread_name_prefix="sfm")
+    try:
+        futures = {oid: pool.submit(sfm_of, oid, name) for oid, name in order}
+        results = {}
+        for oid, _ in order:  # an error that stops everything is raised once the objects before it are done
+            results[oid] = futures[oid].result()
+            if isinstance(results[oid], ObjectRegistrationError) and (cfg.on_failure == "stop" or oid == anchor):
+                raise results[oid]
+    finally:  # on an error or an interrupt, objects not yet started are dropped
+        pool.shutdown(wait=True, cancel_futures=True)
+    for oid, name in sorted(object_names.items()):
+        sfm = results[oid]
+        if isinstance(sfm, ObjectRegistrationError):
+            log.warning("%s -- training without it", sfm)
             report.dropped.append(oid)
-            report.objects.append({"id": oid, "name": name, "error": str(e)})
+            report.objects.append({"id": oid, "name": name, "error": str(sfm)})
             continue
         flags = occluding_flags(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, W, H)
         drop = cfg.drop_occluding == "all" or (cfg.drop_occluding == "objects" and oid != anchor)
@@ -160,6 +186,7 @@ def report_lines(objects: list[dict]) -> list[str]:
 def preprocess_dataset(
     dataset_root: str | Path, cfg: PreprocessConfig, progress: Callable[[str], None] | None = None,
     video: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, work_dir: str | Path | None = None,
+    workers: int = 1,
 ) -> tuple[SceneInputs, PreprocessReport]:
     """Per-object SfM on a benchgen dataset's training video, aligned to its ground truth.
 
@@ -167,14 +194,15 @@ def preprocess_dataset(
     known camera. Ground truth is used only *after* SfM, to measure accuracy and to record each
     object's unit and the world-to-anchor similarity (needed to place test cameras). ``video``:
     :func:`scenecore.dataset.read_training_video`'s result when the caller already read it;
-    ``work_dir`` as in :func:`preprocess_video`.
+    ``work_dir`` and ``workers`` as in :func:`preprocess_video`.
     """
     root = Path(dataset_root)
     scene = D.load_scene(root)
     images, depths, masks = video if video is not None else D.read_training_video(root, scene)
     names = {o.id: o.name for o in scene.objects}
     inputs, report = preprocess_video(
-        images, masks, scene.intrinsics.matrix(), scene.timestamps.copy(), names, scene.anchor_id, cfg, progress, work_dir
+        images, masks, scene.intrinsics.matrix(), scene.timestamps.copy(), names, scene.anchor_id, cfg, progress, work_dir,
+        workers,
     )
     align_to_ground_truth(inputs, report, scene, depths, masks)
     inputs.meta["dataset"] = str(root)

@@ -105,10 +105,12 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         ratio = float(np.median(np.linalg.norm(cs[i] - cs[j], axis=1) / np.linalg.norm(cg[i] - cg[j], axis=1)))
         assert (0.98 < ratio < 1.02) if o.id == 0 else (0.8 < ratio < 1.25), (o.name, ratio)
         assert 0 < by_id[o.id]["similarity_unit_ratio"] < 2
-    # Deterministic: a second run gives the same poses.
-    again, _ = preprocess_dataset(sfm_scene, cfg)
+    # Deterministic: a second run, every object on its own thread at once, gives the same poses and depths.
+    again, _ = preprocess_dataset(sfm_scene, cfg, workers=3)
+    assert [o.id for o in again.objects] == [o.id for o in inputs.objects]
     for a, b in zip(inputs.objects, again.objects):
-        assert np.array_equal(a.frames, b.frames) and np.allclose(a.cam_to_obj, b.cam_to_obj, atol=1e-9)
+        assert np.array_equal(a.frames, b.frames) and np.array_equal(a.cam_to_obj, b.cam_to_obj)
+        assert all(np.array_equal(x, y) for x, y in zip(a.sparse_depth, b.sparse_depth))
 
 
 def _video_folders(dataset: Path, tmp_path: Path, suffix: str) -> tuple[Path, Path, float]:
@@ -210,13 +212,14 @@ def test_failure_names_object_counts_and_remedy(sfm_scene):
         reconstruct_object(flat, masks, 1, K, PreprocessConfig(), "ball")
     # With on_failure=skip the scene is preprocessed without it and its pixels are ignored.
     inputs, report = preprocess_video(flat, masks, K, np.linspace(0, 1, len(frames)), {0: "room", 1: "ball", 2: "block"}, 0,
-                                        PreprocessConfig(on_failure="skip"))
+                                        PreprocessConfig(on_failure="skip"), workers=2)
     assert 1 in report.dropped and 0 not in report.dropped
     assert [o.id for o in inputs.objects] == [k for k in (0, 1, 2) if k not in report.dropped]
     assert not np.any(inputs.masks == 1) and np.any(inputs.masks == IGNORE_ID)
     # The anchor cannot be dropped: without it there is no scene frame.
     with pytest.raises(ObjectRegistrationError, match="object 0"):
-        preprocess_video(images[:2], masks[:2], K, np.linspace(0, 1, 2), {0: "room"}, 0, PreprocessConfig(on_failure="skip"))
+        preprocess_video(images[:2], masks[:2], K, np.linspace(0, 1, 2), {0: "room", 1: "ball"}, 0,
+                         PreprocessConfig(on_failure="skip"), workers=2)
 
 
 def test_cli_failure_is_one_line(tmp_path):
