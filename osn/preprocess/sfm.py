@@ -374,7 +374,7 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: Preproc
 
 def _collect(
     rec, label: str, frames: list[int], num_features: int, cfg: PreprocessConfig, width: int, height: int,
-    corner: tuple[int, int] = (0, 0),
+    corner: tuple[int, int],
 ) -> ObjectSfM:
     """The registered frames' poses and sparse depths of ``rec`` (a ``pycolmap.Reconstruction``)
     in input pixels (``corner``: the crop's top-left pixel); raises when too few frames or points
