@@ -49,5 +49,5 @@ def test_an_error_in_one_view_is_raised_and_later_views_are_not_started(two_thre
         return x
 
     with pytest.raises(RuntimeError, match="view 1 failed"):
-        map_views(fn, list(range(40)), CPU)
-    assert len(started) < 10 and torch.get_num_threads() == 2
+        map_views(fn, list(range(200)), CPU)
+    assert len(started) < 100 and torch.get_num_threads() == 2  # 100 would take the workers 1 s
