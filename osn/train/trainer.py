@@ -23,7 +23,7 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import TrainConfig, resolve_depth_robust, resolve_w_edge
+from osn.train.config import TrainConfig, resolve_depth_robust, resolve_final_label_trim, resolve_w_edge
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
@@ -81,6 +81,7 @@ class Trainer:
         self.st = SceneTensors(inputs, device)
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
+        self.source = inputs.source
         K = self.st.K
         if self.st.unposed_pixels:
             log.warning("%d mask pixels belong to objects without a pose in their frame (not registered there); "
@@ -367,9 +368,10 @@ class Trainer:
         in the rounds, ``final_label_trim`` in the final phase. Field phases sample from the
         network and reshape the contacts toward whatever it accepts, so labels tight enough to
         need exact contacts pull the fields with them (recall falls); once the fields are final
-        nothing moves, and tight labels only shrink the set toward the region."""
+        nothing moves, and tight labels only shrink the set toward the region where the contacts
+        are exact (the oracle's; ``auto`` keeps the rounds' trim on SfM's: :func:`resolve_final_label_trim`)."""
         final = phase.round == self.cfg.rounds + 1
-        return self.cfg.final_label_trim if final else self.cfg.label_trim
+        return resolve_final_label_trim(self.cfg.final_label_trim, self.source) if final else self.cfg.label_trim
 
     def step_scale(self, phase: Phase) -> dict[str, float]:
         """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""

@@ -10,7 +10,14 @@ import yaml
 
 from osn.model.fields import FieldConfig
 from osn.train import TrainConfig
-from osn.train.config import DEPTH_ROBUST_SFM, label_stride, resolve_depth_robust
+from osn.train.config import (
+    DEPTH_ROBUST_SFM,
+    FINAL_LABEL_TRIM_ORACLE,
+    FINAL_LABEL_TRIM_SFM,
+    label_stride,
+    resolve_depth_robust,
+    resolve_final_label_trim,
+)
 from tests.osn.train.common import small_config
 
 
@@ -78,3 +85,17 @@ def test_auto_depth_robustness_is_off_for_exact_depths_only() -> None:
     assert resolve_depth_robust("auto", "oracle") == 0.0
     assert resolve_depth_robust("auto", "colmap") == resolve_depth_robust("auto", "unknown") == DEPTH_ROBUST_SFM > 0
     assert resolve_depth_robust(0, "colmap") == 0.0 and resolve_depth_robust(2.5, "oracle") == 2.5
+
+
+def test_auto_final_label_trim_is_tight_on_exact_contacts_only() -> None:
+    """``final_label_trim: auto``: 0.2% of a pair's rays on the oracle's exact contacts, the rounds'
+    1% on SfM's and anything else's; a number is taken as it is, a word other than auto refused."""
+    assert TrainConfig().final_label_trim == "auto"
+    assert resolve_final_label_trim("auto", "oracle") == FINAL_LABEL_TRIM_ORACLE == 0.002
+    assert resolve_final_label_trim("auto", "colmap") == resolve_final_label_trim("auto", "video") == FINAL_LABEL_TRIM_SFM
+    assert FINAL_LABEL_TRIM_SFM == TrainConfig().label_trim
+    assert resolve_final_label_trim(0.005, "colmap") == 0.005 and resolve_final_label_trim(0, "oracle") == 0.0
+    with pytest.raises(ValueError, match="final_label_trim"):
+        TrainConfig(final_label_trim="loose")
+    with pytest.raises(ValueError, match="final_label_trim"):
+        TrainConfig(final_label_trim=1.5)
