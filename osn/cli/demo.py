@@ -149,8 +149,9 @@ def stage_generate(args: argparse.Namespace, p: DemoPaths) -> dict:
 #: ``--sfm-resolution auto`` with ``--inputs colmap``: the training video rendered again at this
 #: size (rounded up to a multiple of the benchmark's) for SfM. At 768 px every gnome-house object
 #: registers in at least 14 of 15 frames (the ring-toy's first frame is the one left; at 512 px
-#: its first three); the valid set trained from it (IoU 0.852 +- 0.039, three SfM seeds times
-#: three training seeds) trails the 512 px SfM's (0.921 +- 0.008, training seeds; docs/preprocess.md).
+#: its first three). Its valid set: IoU 0.852 +- 0.039 over three SfM seeds times three training
+#: seeds with the old final trim (0.002), 0.903 +- 0.020 with ``final_label_trim: auto`` (those
+#: runs' final phase re-run), 0.923 on a fresh clone's demo (docs/training.md, docs/preprocess.md).
 SFM_SIZE = 768
 
 
