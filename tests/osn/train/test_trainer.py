@@ -402,3 +402,17 @@ def test_edge_term_is_reported_when_on_and_auto_is_off_on_the_oracle(tiny_datase
     assert resolve_w_edge("auto", "colmap") == W_EDGE_SFM > 0 and resolve_w_edge(0.5, "oracle") == 0.5
     with pytest.raises(ValueError, match="w_edge"):
         _cfg(w_edge="sometimes")
+
+
+def test_final_phase_trims_by_the_inputs_source(tiny_dataset: Path) -> None:
+    """``final_label_trim: auto`` is resolved with the trainer's own inputs: the final scale phase
+    trims 0.2% on the oracle's exact contacts and the rounds' 1% on SfM's; the rounds trim alike."""
+    trims = {}
+    for source in ("oracle", "colmap"):
+        inputs = oracle_inputs(tiny_dataset)
+        inputs.source = source
+        tr = Trainer(inputs, _cfg(final_label_trim="auto", label_trim=0.01), torch.device("cpu"))
+        scale = [p for p in tr.schedule if p.name == "scale"]
+        assert scale[-1].round == tr.cfg.rounds + 1 and all(p.round <= tr.cfg.rounds for p in scale[:-1])
+        trims[source] = [tr.label_trim_at(p) for p in scale]
+    assert trims["oracle"] == [0.01, 0.01, 0.002] and trims["colmap"] == [0.01, 0.01, 0.01]
