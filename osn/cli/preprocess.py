@@ -34,6 +34,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
             max_features=args.max_features, upscale=args.upscale, anchor_downscale=args.anchor_downscale,
             crop_margin=args.crop_margin, grey=args.grey,
+            mapper_restarts=args.mapper_restarts, anchor_mapper_restarts=args.anchor_mapper_restarts,
             points_per_frame=args.points_per_frame, drop_occluding=args.drop_occluding,
         )
     except ValueError as e:
@@ -127,6 +128,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--anchor-downscale", type=int, default=1,
                    help="SfM of the anchor (background), which fills the frame, on frames averaged down by this "
                    "factor (it needs fewer pixels than small objects; at 1024 px upsampled it costs 4x those of 512)")
+    p.add_argument("--mapper-restarts", type=int, default=PreprocessConfig.mapper_restarts,
+                   help="incremental mapping runs per object on the same matches, the best model kept (a small object "
+                   "seen nearly in weak perspective has a depth-reversed twin that one run can settle in)")
+    p.add_argument("--anchor-mapper-restarts", type=int, default=PreprocessConfig.anchor_mapper_restarts,
+                   help="the same for the anchor, which fills the frame and has no such twin")
     p.add_argument("--crop-margin", type=int, default=PreprocessConfig.crop_margin,
                    help="SIFT sees the frames cropped to the box of the object's masks over the video, grown by this "
                    "many pixels (-1: whole frames); SIFT costs every pixel it is given")

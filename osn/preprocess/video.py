@@ -10,6 +10,7 @@ truth (:mod:`osn.preprocess.alignment`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -66,37 +67,7 @@ def preprocess_video(
     check_downscale(W, H, cfg.anchor_downscale)  # before SfM, which costs minutes
     report = PreprocessReport()
     objects: list[ObjectInputs] = []
-
-    said = threading.Lock()  # one progress line at a time from the workers
-
-    def sfm_of(oid: int, name: str) -> ObjectSfM | ObjectRegistrationError:
-        if progress:
-            with said:
-                progress(f"SfM of object {oid} ({name})")
-        f = cfg.anchor_downscale if oid == anchor else 1
-        try:
-            imgs, msks, Ko = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
-            sfm = reconstruct_object(imgs, msks, oid, Ko, cfg, name,
-                                     object_work_dir(work_dir, oid) if work_dir is not None else None)
-        except ObjectRegistrationError as e:
-            return e
-        if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones
-            sfm.sparse_pix = [p * f + f // 2 for p in sfm.sparse_pix]
-        return sfm
-
-    # The anchor first: it is usually the largest object (whole frames), so the others share
-    # the remaining workers meanwhile, and a failure of it (which stops everything) comes early.
-    order = sorted(object_names.items(), key=lambda item: (item[0] != anchor, item[0]))
-    pool = ThreadPoolExecutor(max(1, min(workers, len(order))), thread_name_prefix="sfm")
-    try:
-        futures = {oid: pool.submit(sfm_of, oid, name) for oid, name in order}
-        results = {}
-        for oid, _ in order:  # an error that stops everything is raised once the objects before it are done
-            results[oid] = futures[oid].result()
-            if isinstance(results[oid], ObjectRegistrationError) and (cfg.on_failure == "stop" or oid == anchor):
-                raise results[oid]
-    finally:  # on an error or an interrupt, objects not yet started are dropped
-        pool.shutdown(wait=True, cancel_futures=True)
+    results = reconstruct_objects(images, masks, K, object_names, anchor, cfg, progress, work_dir, workers)
     for oid, name in sorted(object_names.items()):
         sfm = results[oid]
         if isinstance(sfm, ObjectRegistrationError):
@@ -123,6 +94,58 @@ def preprocess_video(
         meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
     )
     return inputs, report
+
+
+def reconstruct_objects(
+    images: np.ndarray,
+    masks: np.ndarray,
+    K: np.ndarray,
+    object_names: dict[int, str],
+    anchor: int,
+    cfg: PreprocessConfig,
+    progress: Callable[[str], None] | None = None,
+    work_dir: str | Path | None = None,
+    workers: int = 1,
+) -> dict[int, ObjectSfM | ObjectRegistrationError]:
+    """Each object's SfM (:func:`reconstruct_object`), ``workers`` objects at once on threads;
+    ``object id -> ObjectSfM``, or the error of an object that failed to register.
+
+    The anchor is reconstructed at ``cfg.anchor_downscale`` (its sparse pixels mapped back to the
+    full frames) with ``cfg.anchor_mapper_restarts`` mapper runs, and started first: it is usually the largest object (whole frames), so the others
+    share the remaining workers meanwhile, and its failure (which stops everything) comes early.
+    A failure that stops everything (``cfg.on_failure == "stop"``, or the anchor's) is raised once
+    the objects before it in that order are done; objects not yet started are then dropped.
+    """
+    said = threading.Lock()  # one progress line at a time from the workers
+
+    def sfm_of(oid: int, name: str) -> ObjectSfM | ObjectRegistrationError:
+        if progress:
+            with said:
+                progress(f"SfM of object {oid} ({name})")
+        f = cfg.anchor_downscale if oid == anchor else 1
+        ocfg = dataclasses.replace(cfg, mapper_restarts=cfg.anchor_mapper_restarts) if oid == anchor else cfg
+        try:
+            imgs, msks, Ko = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
+            sfm = reconstruct_object(imgs, msks, oid, Ko, ocfg, name,
+                                     object_work_dir(work_dir, oid) if work_dir is not None else None)
+        except ObjectRegistrationError as e:
+            return e
+        if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones
+            sfm.sparse_pix = [p * f + f // 2 for p in sfm.sparse_pix]
+        return sfm
+
+    order = sorted(object_names.items(), key=lambda item: (item[0] != anchor, item[0]))
+    pool = ThreadPoolExecutor(max(1, min(workers, len(order))), thread_name_prefix="sfm")
+    results: dict[int, ObjectSfM | ObjectRegistrationError] = {}
+    try:
+        futures = {oid: pool.submit(sfm_of, oid, name) for oid, name in order}
+        for oid, _ in order:
+            results[oid] = futures[oid].result()
+            if isinstance(results[oid], ObjectRegistrationError) and (cfg.on_failure == "stop" or oid == anchor):
+                raise results[oid]
+    finally:  # on an error or an interrupt, objects not yet started are dropped
+        pool.shutdown(wait=True, cancel_futures=True)
+    return results
 
 
 def training_inputs(inputs: SceneInputs, factor: int, cfg: PreprocessConfig) -> SceneInputs:

@@ -496,8 +496,9 @@ def test_cropped_sfm_keeps_registration_and_pixels_on_the_object(sfm_scene):
 
 
 def test_anchor_downscale_runs_the_anchors_sfm_on_smaller_frames(sfm_scene):
-    """The anchor's SfM on frames averaged down by 2 (what SIFT saw there), its sparse pixels back
-    in full-frame pixels at the blocks' centres, on the anchor; the other objects untouched."""
+    """The anchor's SfM on frames averaged down by 2 (what SIFT saw there) and mapped
+    ``anchor_mapper_restarts`` times, its sparse pixels back in full-frame pixels at the blocks'
+    centres, on the anchor; the other objects untouched (full frames, ``mapper_restarts`` runs)."""
     from osn.preprocess.inputs import downscale_video
 
     orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
@@ -506,8 +507,11 @@ def test_anchor_downscale_runs_the_anchors_sfm_on_smaller_frames(sfm_scene):
     inputs, rep = preprocess_video(orc.images, orc.masks, orc.K, orc.timestamps, {0: names[0], 1: names[1]}, 0, cfg)
     features = {r["id"]: r["features"] for r in rep.objects}
     small = downscale_video(orc.images, orc.masks, orc.K, 2)
-    direct = reconstruct_object(small[0], small[1], 0, small[2], PreprocessConfig(), "room")
+    direct = reconstruct_object(small[0], small[1], 0, small[2], PreprocessConfig(mapper_restarts=1), "room")
     assert features[0] == direct.num_features
+    seeds = {r["id"]: {t["seed"] for t in r["restarts"]} for r in rep.objects}
+    assert cfg.anchor_mapper_restarts == 1 and seeds[0] == {cfg.seed}
+    assert seeds[1] <= set(range(cfg.mapper_restarts)) and len(seeds[1]) > 1
     assert features[1] == reconstruct_object(orc.images, orc.masks, 1, orc.K, PreprocessConfig()).num_features
     room = inputs.object(0)
     assert [len(p) for p in room.sparse_pix] == [len(p) for p in direct.sparse_pix]
