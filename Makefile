@@ -11,11 +11,13 @@ PY     := $(VENV)/bin/python
 TORCH_VERSION := 2.13.0
 TORCH_SPEC ?= torch==$(TORCH_VERSION)
 STAMP  := $(VENV)/.installed
+TEST_STAMP := $(VENV)/.installed-test
 
 .PHONY: setup test demo addon clean-venv
 
-setup: $(STAMP)
+setup: $(STAMP) $(TEST_STAMP)
 
+# What the pipeline needs (the demo's set-up): torch, the package with rendering, LPIPS weights.
 $(STAMP): pyproject.toml Makefile
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (Python 3.11 is required)"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,15 +25,20 @@ $(STAMP): pyproject.toml Makefile
 	@# TORCH_SPEC first, so pip never resolves torch itself (that would pull CUDA packages).
 	@$(PY) -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '$(TORCH_VERSION)')" >/dev/null 2>&1 \
 		|| $(PY) -m pip install --quiet $(TORCH_SPEC)
-	$(PY) -m pip install --quiet -e ".[render,test]"
-	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared
-	@# torchvision would pull a CUDA torch; nothing imports it outside tests.
-	$(PY) -m pip install --quiet --no-deps lpips==0.1.4
+	$(PY) -m pip install --quiet -e ".[render]"
 	@# LPIPS AlexNet v0.1 weights for offline evaluation, fetched and converted once (idempotent).
 	$(PY) -m benchgen.score.lpips install
 	@touch $(STAMP)
 
-test: $(STAMP)
+# What the tests need besides (30 s of the set-up: ray, hypothesis, pytest): `make demo` skips it.
+$(TEST_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[render,test]"
+	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared
+	@# torchvision would pull a CUDA torch; nothing imports it outside tests.
+	$(PY) -m pip install --quiet --no-deps lpips==0.1.4
+	@touch $(TEST_STAMP)
+
+test: $(TEST_STAMP)
 	$(PY) -m pytest -q
 
 demo: $(STAMP)
