@@ -11,7 +11,7 @@ are read again from the dataset when its matched candidate gets its full metrics
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -56,6 +56,12 @@ def configuration_masks(
     return out
 
 
+#: Ground-truth views :meth:`Truth.views` keeps in memory once read, when every configuration's
+#: fit in this many bytes: the scorer reads each configuration's views once per scored candidate
+#: set (``osn evaluate`` scores four), and decoding them again cost ~3 s per set on the demo.
+VIEWS_CACHE_BYTES = 256 * 2**20
+
+
 @dataclass
 class Truth:
     """The evaluated views of every ground-truth configuration.
@@ -71,6 +77,7 @@ class Truth:
     scales: np.ndarray
     masked_rgb: np.ndarray
     mask: np.ndarray
+    _views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def num_configurations(self) -> int:
@@ -81,9 +88,16 @@ class Truth:
         return len(self.frames)
 
     def views(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Configuration g's ``rgb (V, H, W, 3)`` uint8, ``depth (V, H, W)``, ``ids (V, H, W)`` from disk."""
-        rgb, depth, ids = zip(*(D.read_frame(self.root, f.name, g, scene=self.scene) for f in self.frames))
-        return np.stack(rgb), np.stack(depth), np.stack(ids)
+        """Configuration g's ``rgb (V, H, W, 3)`` uint8, ``depth (V, H, W)``, ``ids (V, H, W)`` from
+        disk, kept (read-only) for the next call when all configurations fit :data:`VIEWS_CACHE_BYTES`."""
+        if g in self._views:
+            return self._views[g]
+        rgb, depth, ids = (np.stack(x) for x in zip(*(D.read_frame(self.root, f.name, g, scene=self.scene) for f in self.frames)))
+        if self.num_configurations * (rgb.nbytes + depth.nbytes + ids.nbytes) <= VIEWS_CACHE_BYTES:
+            for a in (rgb, depth, ids):
+                a.setflags(write=False)
+            self._views[g] = (rgb, depth, ids)
+        return rgb, depth, ids
 
     def first_views(self, v: int) -> "Truth":
         """The same ground truths restricted to the first ``v`` evaluated views (no copy)."""

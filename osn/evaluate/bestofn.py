@@ -23,12 +23,14 @@ N below that row) from the error of the fields themselves (that row below the gr
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import torch
 
 from scenecore import dataset as D
 from scenecore.config import flag, integer, validate
@@ -151,7 +153,8 @@ def evaluate(
         raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    truth = load_truth(dataset_root, cfg.max_views)
+    # Configurations read and masked in forked processes, one per core torch would use (numpy only).
+    truth = load_truth(dataset_root, cfg.max_views, workers=max(1, min(torch.get_num_threads(), os.cpu_count() or 1)))
     region = D.load_valid_region(dataset_root, truth.scene.num_objects)
     G, V = truth.num_configurations, truth.num_views
     timings["ground_truth_s"] = time.perf_counter() - t0

@@ -267,3 +267,21 @@ def test_max_views_reads_only_those_views(tiny_dataset, tmp_path, capsys):
     assert run(pred, tiny_dataset, tmp_path / "out", "--no-lpips", "--max-views", "4") == 0
     assert json.loads((tmp_path / "out" / "metrics.json").read_text())["views"] == keep
     assert run(pred, tiny_dataset, tmp_path / "all", "--no-lpips") == 2 and "missing view" in capsys.readouterr().err
+
+
+def test_truth_views_are_read_once_when_small(tiny_dataset, monkeypatch):
+    """Truth.views returns the files' contents; a second call returns the kept read-only arrays
+    when every configuration fits the cache's bytes, and reads the disk again when not."""
+    from benchgen.score import truth as T
+
+    truth = load_truth(tiny_dataset, max_views=3)
+    f = truth.frames[2]
+    first = truth.views(1)
+    for a, b in zip(first, D.read_frame(tiny_dataset, f.name, 1)):
+        assert np.array_equal(a[2], b)
+    again = truth.views(1)
+    assert all(a is b for a, b in zip(first, again)) and not any(a.flags.writeable for a in again)
+    monkeypatch.setattr(T, "VIEWS_CACHE_BYTES", 0)
+    fresh = load_truth(tiny_dataset, max_views=3)
+    one, two = fresh.views(1), fresh.views(1)
+    assert all(a is not b and np.array_equal(a, b) for a, b in zip(one, two)) and one[0].flags.writeable
