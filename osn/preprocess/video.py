@@ -111,8 +111,9 @@ def reconstruct_objects(
     ``object id -> ObjectSfM``, or the error of an object that failed to register.
 
     The anchor is reconstructed at ``cfg.anchor_downscale`` (its sparse pixels mapped back to the
-    full frames) with ``cfg.anchor_mapper_restarts`` mapper runs, and started first: it is usually the largest object (whole frames), so the others
-    share the remaining workers meanwhile, and its failure (which stops everything) comes early.
+    full frames) with ``cfg.anchor_mapper_restarts`` mapper runs, and started first: it is usually
+    the largest object (whole frames), so the others share the remaining workers meanwhile, and its
+    failure (which stops everything) comes early.
     A failure that stops everything (``cfg.on_failure == "stop"``, or the anchor's) is raised once
     the objects before it in that order are done; objects not yet started are then dropped.
     """
