@@ -150,8 +150,8 @@ def stage_generate(args: argparse.Namespace, p: DemoPaths) -> dict:
 #: size (rounded up to a multiple of the benchmark's) for SfM. At 768 px every gnome-house object
 #: registers in at least 14 of 15 frames (the ring-toy's first frame is the one left; at 512 px
 #: its first three). Its valid set: IoU 0.852 +- 0.039 over three SfM seeds times three training
-#: seeds with the old final trim (0.002), 0.899 +- 0.012 with ``final_label_trim: auto`` (six full
-#: trainings), 0.923 on a fresh clone's demo (docs/training.md, docs/preprocess.md).
+#: seeds with the old final trim (0.002), 0.906 +- 0.014 with ``final_label_trim: auto`` (the same
+#: nine, full trainings), 0.923 on a fresh clone's demo (docs/training.md, docs/preprocess.md).
 SFM_SIZE = 768
 
 
