@@ -98,8 +98,8 @@ def resolve_final_label_trim(value: float | str, source: str) -> float:
     from ``source``: ``auto`` is :data:`FINAL_LABEL_TRIM_ORACLE` on the oracle's exact contacts
     (looser cost the demo's valid set: 0.888 -> 0.771 at 0.01) and :data:`FINAL_LABEL_TRIM_SFM`,
     the rounds' trim, on anything else, where a few contact rays of each pair are off and the
-    tight trim cut into the region (the demo's 768 px SfM, nine runs, the final phase re-run:
-    0.854 +- 0.046 -> 0.903 +- 0.020)."""
+    tight trim cut into the region (the demo's 768 px SfM, nine full trainings: 0.852 +- 0.039 ->
+    0.906 +- 0.014)."""
     return by_source(value, source, FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM)
 
 
