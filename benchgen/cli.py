@@ -6,7 +6,10 @@ import argparse
 import sys
 from typing import Sequence
 
-from scenecore.cli import UserError, run_cli, subcommand
+from scenecore.cli import UserError, blas_on_one_thread, run_cli, subcommand
+
+blas_on_one_thread()  # before the import below brings numpy in
+
 from benchgen.score.command import add_score_command
 
 

@@ -3,9 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import traceback
 from typing import Callable, Sequence
+
+
+def blas_on_one_thread() -> None:
+    """numpy's OpenBLAS on one thread, in this process and the processes it starts; the command
+    line entry points call it before numpy is imported (later, only child processes see it).
+
+    The toolkit's numpy work is small matrices (poses, rays of one view), which OpenBLAS threads do
+    not speed up, yet after each call its idle threads spin in ``sched_yield`` for a while: on two
+    cores that took 42 s of CPU time from one demo evaluation's render threads (system time 63 s,
+    21 s on one thread; same figures). torch keeps its own thread pool. A value the user set wins.
+    """
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 class UserError(Exception):

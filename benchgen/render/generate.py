@@ -14,6 +14,9 @@ Phases (each resumable; every file is written atomically through ``scenecore.dat
 per-object renders): SfM's input at another resolution, read for its frames and masks, its ground
 truth only measuring SfM's accuracy. Such a directory has no region, configurations or
 verification; running ``generate`` without ``video_only`` on it later renders the rest.
+``ground_truth=False`` stops after phase 3: what a method trains on (the video) and what training
+is measured against (the region) exist, the configurations' test views and verification do not;
+a later full call renders them, so a pipeline can train while they render (``osn demo``).
 
 Tasks run on a ``Worker`` holding one Blender scene: in-process, in N spawned processes
 (``--workers``), or in N Ray actors (``--executor ray``; the output directory must then be on a
@@ -251,11 +254,13 @@ class Summary:
     verification: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     video_only: bool = False
+    ground_truth: bool = True
 
     @property
     def passed(self) -> bool:
-        """Every configuration verified; for a training video alone, that it was written."""
-        return self.video_only or bool(self.verification.get("passed"))
+        """Every configuration verified; for a training video alone, or a dataset stopped before
+        its ground truths (``ground_truth=False``), that what was asked for was written."""
+        return self.video_only or not self.ground_truth or bool(self.verification.get("passed"))
 
     def add(self, r: TaskResult) -> None:
         self.frames_rendered += r.rendered
@@ -351,10 +356,11 @@ def _verify_all(
 
 def generate(
     spec: SceneSpec, root: str | Path, workers: int = 1, executor: str = "local", address: str | None = None,
-    progress: bool = True, video_only: bool = False,
+    progress: bool = True, video_only: bool = False, ground_truth: bool = True,
 ) -> Summary:
     """Generate (or finish) a dataset; see the module docstring for the phases (``video_only``:
-    the training video alone)."""
+    the training video alone; ``ground_truth=False``: stop once the region and the configurations
+    are written, before their test views and verification)."""
     t0 = time.perf_counter()
     root = Path(root)
     spec_text = dump_spec(spec)
@@ -366,7 +372,7 @@ def generate(
     scene = built.scene
     D.write_scene(root, scene)
     names = [g.name for g in built.objects]
-    summary = Summary(str(root), workers=workers, names=names, video_only=video_only)
+    summary = Summary(str(root), workers=workers, names=names, video_only=video_only, ground_truth=ground_truth)
     with Executor(spec, root, workers, executor, address) as ex:
         train = [f.name for f in scene.train_frames]
         if video_only:
@@ -403,6 +409,9 @@ def generate(
             raise UserError(f"{spec.source}: {e}") from None
         for g, s in enumerate(configs):
             D.write_configuration(root, D.Configuration(g, s))
+        if not ground_truth:
+            summary.wall_seconds = time.perf_counter() - t0
+            return summary
         tests = [f.name for f in scene.test_frames]
         todo = [
             Task("test", chunk, g, s.tolist())

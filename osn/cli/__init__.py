@@ -6,7 +6,9 @@ import argparse
 import sys
 from typing import Sequence
 
-from scenecore.cli import run_cli
+from scenecore.cli import blas_on_one_thread, run_cli
+
+blas_on_one_thread()  # before the imports below bring numpy in
 
 from osn.cli.demo import add_demo_parser
 from osn.cli.evaluate import add_eval_parsers

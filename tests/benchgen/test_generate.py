@@ -296,6 +296,23 @@ def test_video_only_writes_the_training_video_and_the_rest_follows(tiny, tmp_pat
     _assert_same_tree(tiny, out)
 
 
+def test_without_ground_truth_stops_before_the_test_views_and_the_rest_follows(tiny, tmp_path):
+    """`ground_truth=False` (what `osn demo` trains on before its ground truths render): the
+    training video, the exact region and the configurations, byte for byte those of a full
+    generation, and no test view or verification; a full call finishes the same dataset."""
+    out = tmp_path / "partial"
+    summary = generate(load_preset("tiny"), out, progress=False, ground_truth=False)
+    assert summary.passed and not summary.verification
+    files = _tree(out)
+    assert {f.parts[0] for f in files} == {"train", "configs", "scene.json", "spec.yaml", "valid_region.json"}
+    assert [f for f in files if f.parts[0] == "configs"] == [Path("configs") / f"{g:03d}" / "config.json" for g in range(3)]
+    _, mismatch, errors = filecmp.cmpfiles(tiny, out, [str(f) for f in files], shallow=False)
+    assert not mismatch and not errors
+    summary = generate(load_preset("tiny"), out, progress=False)
+    assert summary.passed and summary.verification["passed"]
+    _assert_same_tree(tiny, out)
+
+
 def test_resume_after_killing_parallel_run(tiny, tmp_path):
     out = tmp_path / "killed"
     spec = load_preset("tiny").with_overrides(configs=3)

@@ -78,7 +78,9 @@ def test_outputs_are_sensible(demo):
     assert " dB / " in row  # the time is reported with what it bought (PSNR / IoU)
     assert all((demo / "report" / p).stat().st_size > 1000 for p in ("best_of_n.png", "training_curve.png"))
     stages = json.loads((demo / "stages.json").read_text())
-    assert list(stages) == ["generate", "preprocess", "train", "sample", "evaluate", "export", "addon"]
+    assert list(stages) == ["generate", "preprocess", "ground-truth", "train", "sample", "evaluate", "export", "addon"]
+    # The ground truth rendered beside training, on its own clock.
+    assert stages["ground-truth"]["background"] and stages["ground-truth"]["summary"]["passed"]
 
 
 def test_every_sample_passes_the_exported_scale_network(demo):
@@ -92,7 +94,7 @@ def test_every_sample_passes_the_exported_scale_network(demo):
 def test_rerun_resumes_instead_of_starting_over(demo):
     r = subprocess.run([sys.executable, *DEMO, "--work", str(demo)], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
-    assert r.stdout.count("already done") == 7
+    assert r.stdout.count("already done") == 8
     # Another value of an option a finished stage depends on: one line, nothing reused or redone.
     changed = [*DEMO[:DEMO.index("-n") + 1], "61", *DEMO[DEMO.index("-n") + 2:]]
     before = (demo / "run" / "samples.npz").read_bytes()

@@ -100,8 +100,10 @@ def test_demo_killed_in_train_resumes_to_equal_metrics(reference: Path, tmp_path
 
     r = _demo(work)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert r.stdout.count("already done") == 2  # generate, preprocess
-    assert "[3/7] train: train per-object fields" in r.stdout and "(resuming after" in r.stdout
+    # generate and preprocess; the ground truth, rendering beside training, was killed with the
+    # demo (it is in its process group) unless it had finished
+    assert "[1/8] generate: already done" in r.stdout and "[2/8] preprocess: already done" in r.stdout
+    assert "[4/8] train: train per-object fields" in r.stdout and "(resuming after" in r.stdout
     _assert_same_metrics(reference, work)
     # The training curve too: the same iterations and values, no line twice (wall time aside).
     curve = [[{k: v for k, v in json.loads(ln).items() if k != "wall_time"} for ln in (d / "run" / "metrics.jsonl").read_text().splitlines()]
@@ -129,8 +131,8 @@ def test_demo_killed_in_evaluate_resumes_to_equal_metrics(reference: Path, tmp_p
 
     r = _demo(work)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert r.stdout.count("already done") == 4  # generate, preprocess, train, sample
-    assert "[5/7] evaluate: best-of-N evaluation" in r.stdout and "(resuming after" in r.stdout
+    assert r.stdout.count("already done") == 5  # generate, preprocess, ground-truth, train, sample
+    assert "[6/8] evaluate: best-of-N evaluation" in r.stdout and "(resuming after" in r.stdout
     _assert_same_metrics(reference, work)
     for d in ("report", "candidates"):
         assert _files(reference / d) == _files(work / d), d

@@ -1,15 +1,18 @@
-"""Resumable stages (osn demo's engine): skip, resume with the time already spent, refuse changed options."""
+"""Resumable stages (osn demo's engine): skip, resume with the time already spent, refuse changed options,
+run background work beside the next stages."""
 
 from __future__ import annotations
 
 import json
+import shutil
+import sys
 import time
 from pathlib import Path
 
 import pytest
 
 from scenecore.cli import UserError
-from osn.cli.stages import Stage, run_stages
+from osn.cli.stages import BackgroundCommand, Stage, run_stages
 
 
 def test_interrupted_stage_resumes_with_its_time_and_refuses_other_options(tmp_path: Path) -> None:
@@ -40,3 +43,74 @@ def test_interrupted_stage_resumes_with_its_time_and_refuses_other_options(tmp_p
     again = run_stages([Stage("s", "third", quick, {"n": 1})], tmp_path, lines.append)["s"]
     assert again == rec and calls == ["a", "b"] and "already done" in lines[-1]
     assert json.loads((tmp_path / "stages.json").read_text())["s"]["seconds"] == rec["seconds"]
+
+
+def _python(code: str) -> list[str]:
+    return [sys.executable, "-c", code]
+
+
+def test_background_stage_runs_beside_the_next_and_is_waited_for_where_needed(tmp_path: Path) -> None:
+    """A real child process: the stage after it runs while it sleeps, the stage that needs it
+    starts only once it has written its file, its time is its own, and it runs at the lowest
+    CPU priority. A rerun skips it like any finished stage."""
+    flag = tmp_path / "flag"
+    job = BackgroundCommand(_python(f"import os, time, pathlib; print('niceness', os.nice(0)); time.sleep(0.5); "
+                                    f"pathlib.Path({str(flag)!r}).write_text('x')"), tmp_path / "bg.log",
+                            lambda: {"wrote": flag.exists()})
+    seen: dict[str, bool] = {}
+
+    def beside() -> dict:
+        seen["beside"] = flag.exists()
+        return {}
+
+    def after() -> dict:  # idles past the job's end: its recorded time must not include this
+        deadline = time.monotonic() + 60
+        while not flag.exists() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        seen["flag_at"] = time.perf_counter() - t0
+        time.sleep(1.0)
+        return {}
+
+    lines: list[str] = []
+    t0 = time.perf_counter()
+    stages = [Stage("bg", "sleep, then write", job.start, background=True), Stage("beside", "b", beside),
+              Stage("idle", "i", after), Stage("needing", "n", lambda: seen.update(needing=flag.exists()), needs=("bg",))]
+    rec = run_stages(stages, tmp_path / "w", lines.append)
+    flag_at = seen.pop("flag_at")
+    assert seen == {"beside": False, "needing": True}
+    assert list(rec) == ["bg", "beside", "idle", "needing"]
+    assert rec["bg"]["background"] and rec["bg"]["summary"] == {"wrote": True}
+    assert 0.5 <= rec["bg"]["seconds"] < flag_at + 0.5  # its own end, not when "needing" waited for it
+    assert rec["bg"]["waited"] < 0.1  # it had ended during "idle"
+    assert any("bg: done in" in ln and "in the background" in ln for ln in lines)
+    if shutil.which("nice"):
+        assert "niceness 19" in (tmp_path / "bg.log").read_text()
+    again = run_stages([Stage("bg", "x", lambda: pytest.fail("rerun"), background=True),
+                        Stage("needing", "n", lambda: {}, needs=("bg",))], tmp_path / "w", lines.append)
+    assert again["bg"] == rec["bg"]
+
+
+def test_background_failure_and_foreground_errors(tmp_path: Path) -> None:
+    """A failing command stops the job with its log's last line and stays resumable; an error
+    in a foreground stage stops a background command still running (it never writes its file)."""
+    bad = BackgroundCommand(_python("import sys; print('first'); print('what went wrong'); sys.exit(3)"), tmp_path / "bad.log")
+    stages = [Stage("bg", "fails", bad.start, background=True), Stage("needing", "n", dict, needs=("bg",))]
+    with pytest.raises(UserError, match=r"bad\.log: .* failed \(exit 3\): what went wrong"):
+        run_stages(stages, tmp_path / "a")
+    assert (tmp_path / "a" / ".done" / "bg.started.json").exists() and not (tmp_path / "a" / ".done" / "bg.json").exists()
+
+    flag = tmp_path / "flag"
+    slow = BackgroundCommand(_python(f"import time, pathlib; time.sleep(3); pathlib.Path({str(flag)!r}).write_text('x')"),
+                             tmp_path / "slow.log")
+
+    def broken() -> dict:
+        raise RuntimeError("foreground failed")
+
+    with pytest.raises(RuntimeError, match="foreground failed"):
+        run_stages([Stage("bg", "slow", slow.start, background=True), Stage("broken", "b", broken)], tmp_path / "b")
+    assert not slow.running() and slow.ended is not None
+    time.sleep(3.5)
+    assert not flag.exists()
+
+    with pytest.raises(ValueError, match=r"stage 'x' needs \['bg'\], which are not earlier background stages"):
+        run_stages([Stage("x", "x", dict, needs=("bg",)), Stage("bg", "later", slow.start, background=True)], tmp_path / "c")
