@@ -416,5 +416,6 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=float, default=0.5, help="validity threshold of sampling")
     p.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth (0 = all)")
     p.add_argument("--workers", type=int, default=2,
-                   help="rendering processes for benchgen, and objects reconstructed at once by SfM (results do not depend on it)")
+                   help="rendering processes for benchgen, and objects (and each object's mapper restarts) "
+                   "reconstructed at once by SfM (results do not depend on it)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampled configurations (the export carries those)")

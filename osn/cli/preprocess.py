@@ -155,5 +155,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0,
                    help="every pycolmap random seed, and the seed of the sparse-depth subsampling")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="objects reconstructed at once, each on one core (default: this machine's cores, "
-                   "here %(default)s); the result does not depend on it")
+                   help="objects reconstructed at once, and each object's mapper restarts run at once, each on "
+                   "one thread (default: this machine's cores, here %(default)s); the result does not depend on it")

@@ -15,6 +15,7 @@ import logging
 import os
 import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -204,13 +205,14 @@ class PreprocessReport:
 
 def reconstruct_object(
     images: np.ndarray, masks: np.ndarray, object_id: int, K: np.ndarray, cfg: PreprocessConfig, name: str = "",
-    work_dir: Path | None = None,
+    work_dir: Path | None = None, restart_workers: int = 1,
 ) -> ObjectSfM:
     """SfM of one object from ``images (T,H,W,3) uint8`` and ``masks (T,H,W)`` instance ids.
 
     ``work_dir`` (created, must not exist) keeps COLMAP's images, ``database.db`` and the final
     model (``model/``, after the registration check and the final bundle adjustment) for inspection;
-    by default they live in a temporary directory that is removed.
+    by default they live in a temporary directory that is removed. ``restart_workers``: mapper
+    restarts run at once, on threads (the result does not depend on it).
 
     Raises:
         ObjectRegistrationError: too few frames, features or points; the message says what helps.
@@ -233,7 +235,8 @@ def reconstruct_object(
         work = Path(work_dir)
         work.mkdir(parents=True)
     try:
-        return _reconstruct_in(work, images, masks, frames, object_id, K, cfg, label, keep_model=work_dir is not None)
+        return _reconstruct_in(work, images, masks, frames, object_id, K, cfg, label, keep_model=work_dir is not None,
+                               restart_workers=restart_workers)
     finally:
         if work_dir is None:
             shutil.rmtree(work, ignore_errors=True)
@@ -245,7 +248,7 @@ ADVICE = "use more frames, a higher resolution, or more texture on the object"
 
 def _reconstruct_in(
     work: Path, images: np.ndarray, masks: np.ndarray, frames: list[int], object_id: int, K: np.ndarray,
-    cfg: PreprocessConfig, label: str, keep_model: bool,
+    cfg: PreprocessConfig, label: str, keep_model: bool, restart_workers: int = 1,
 ) -> ObjectSfM:
     """:func:`reconstruct_object` inside the empty directory ``work``, from the ``frames`` where
     the object is visible; with ``keep_model`` the final model is written to ``work/model``."""
@@ -261,7 +264,7 @@ def _reconstruct_in(
     db = work / "database.db"
     num_features = _extract_features(db, img_dir, mask_dir, names, K, cfg)
     _match_features(db, len(frames), cfg)
-    rec, tried = _best_of_restarts(db, img_dir, out_dir, _mapper_options(cfg), cfg)
+    rec, tried = _best_of_restarts(db, img_dir, out_dir, cfg, restart_workers)
     if rec is None:
         raise ObjectRegistrationError(
             f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {ADVICE}"
@@ -350,9 +353,11 @@ def _mapper_options(cfg: PreprocessConfig):
     return opts
 
 
-def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: PreprocessConfig) -> tuple[object, list[dict]]:
-    """Incremental mapping from ``cfg.mapper_restarts`` seeds: the best reconstruction (None if
-    no restart found one) and, per model found, its seed, frames and mean reprojection error.
+def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessConfig, workers: int = 1
+                      ) -> tuple[object, list[dict]]:
+    """Incremental mapping from ``cfg.mapper_restarts`` seeds, ``workers`` runs at once on threads:
+    the best reconstruction (None if no restart found one) and, per model found, its seed, frames
+    and mean reprojection error.
 
     A small object seen nearly in weak perspective has a depth-reversed twin: the mapper can
     settle in either, and the reversed one turns its rotations the wrong way, by an error that
@@ -360,14 +365,24 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, opts, cfg: Preproc
     twin fits worse, so among the restarts the one registering the most frames with the lowest
     mean reprojection error wins (same sofa, 6 seeds: 0.75 px in the 2x-upsampled images and 2.5
     degrees for the true one against 0.84-0.87 px and 17 degrees for the five reversed ones).
+
+    Each run is single-threaded with its own options and seed, and COLMAP's random generator is
+    per thread, so runs side by side give the models they give one after the other (the demo's
+    gnome: equal poses, errors and point counts; ``test_mapper_restarts_on_threads_equal_one_after_another``).
     """
     import pycolmap
 
-    best, best_key, best_idx, tried = None, None, -1, []
-    for k in range(max(cfg.mapper_restarts, 1)):
+    def run(k: int):
+        opts = _mapper_options(cfg)
         opts.random_seed = opts.mapper.random_seed = cfg.seed + k
         (out_dir / str(k)).mkdir()
-        recs = pycolmap.incremental_mapping(db, img_dir, out_dir / str(k), options=opts)
+        return pycolmap.incremental_mapping(db, img_dir, out_dir / str(k), options=opts)
+
+    restarts = range(max(cfg.mapper_restarts, 1))
+    with ThreadPoolExecutor(max(1, min(workers, len(restarts))), thread_name_prefix="mapper") as pool:
+        runs = list(pool.map(run, restarts))  # in seed order, so ties are broken as one after another
+    best, best_key, best_idx, tried = None, None, -1, []
+    for k, recs in zip(restarts, runs):
         for rec in recs.values():
             err = rec.compute_mean_reprojection_error()
             tried.append({"seed": cfg.seed + k, "registered_frames": rec.num_reg_images(), "reprojection_error_px": err / cfg.upscale})

@@ -107,8 +107,10 @@ def reconstruct_objects(
     work_dir: str | Path | None = None,
     workers: int = 1,
 ) -> dict[int, ObjectSfM | ObjectRegistrationError]:
-    """Each object's SfM (:func:`reconstruct_object`), ``workers`` objects at once on threads;
-    ``object id -> ObjectSfM``, or the error of an object that failed to register.
+    """Each object's SfM (:func:`reconstruct_object`), ``workers`` objects at once on threads, and
+    each object's mapper restarts ``workers`` at once (the anchor's four runs are the longest
+    step of its path while the objects beside it end early); ``object id -> ObjectSfM``, or the
+    error of an object that failed to register.
 
     The anchor is reconstructed at ``cfg.anchor_downscale`` (its sparse pixels mapped back to the
     full frames) with ``cfg.anchor_mapper_restarts`` mapper runs, and started first: it is usually
@@ -128,7 +130,7 @@ def reconstruct_objects(
         try:
             imgs, msks, Ko = downscale_video(images, masks, K, f) if f > 1 else (images, masks, K)
             sfm = reconstruct_object(imgs, msks, oid, Ko, ocfg, name,
-                                     object_work_dir(work_dir, oid) if work_dir is not None else None)
+                                     object_work_dir(work_dir, oid) if work_dir is not None else None, workers)
         except ObjectRegistrationError as e:
             return e
         if f > 1:  # pixel p of the small frames covers [p f, p f + f) of the full ones

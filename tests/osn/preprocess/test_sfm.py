@@ -495,6 +495,19 @@ def test_cropped_sfm_keeps_registration_and_pixels_on_the_object(sfm_scene):
         assert x0 > 0 or y0 > 0  # the corner moved: pixels were mapped back
 
 
+def test_mapper_restarts_on_threads_equal_one_after_another(sfm_scene):
+    """The mapper's restarts side by side on threads (what `osn preprocess --workers` does) give
+    the models they give one after another: the same restarts, kept model, poses and depths,
+    to the bit (COLMAP's random generator is per thread, each run seeded on its own)."""
+    orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
+    for oid in (0, 1):
+        one, two = (reconstruct_object(orc.images, orc.masks, oid, orc.K, PreprocessConfig(), "o", restart_workers=w)
+                    for w in (1, 3))
+        assert len(one.restarts) >= 2 and one.restarts == two.restarts
+        assert np.array_equal(one.frames, two.frames) and np.array_equal(one.cam_to_obj, two.cam_to_obj)
+        assert all(np.array_equal(a, b) for a, b in zip(one.sparse_depth, two.sparse_depth))
+
+
 def test_anchor_downscale_runs_the_anchors_sfm_on_smaller_frames(sfm_scene):
     """The anchor's SfM on frames averaged down by 2 (what SIFT saw there) and mapped
     ``anchor_mapper_restarts`` times, its sparse pixels back in full-frame pixels at the blocks'
