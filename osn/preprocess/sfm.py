@@ -368,7 +368,7 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
 
     Each run is single-threaded with its own options and seed, and COLMAP's random generator is
     per thread, so runs side by side give the models they give one after the other (the demo's
-    gnome: equal poses, errors and point counts; ``test_mapper_restarts_on_threads_equal_one_after_another``).
+    room and gnome: equal poses, errors and point counts; ``test_mapper_restarts_on_threads_equal_one_after_another``).
     """
     import pycolmap
 
