@@ -203,11 +203,14 @@ class BackgroundCommand:
         return self.summary()
 
     def stop(self, grace: float = 30.0) -> None:
-        """Interrupt the command (SIGINT, so it cleans up as after a Ctrl-C), then kill it after ``grace`` s."""
+        """End the command: SIGTERM, then SIGKILL after ``grace`` s. Not SIGINT: a command started
+        from a non-interactive shell's background job inherits SIGINT ignored, and Python then
+        never turns it into KeyboardInterrupt (seen in CI). Work that writes atomically and
+        resumes, as ``benchgen generate`` does, loses nothing but the frames in flight."""
         if not self.running():
             return
         assert self.proc is not None
-        self.proc.send_signal(signal.SIGINT)
+        self.proc.send_signal(signal.SIGTERM)
         try:
             self.proc.wait(grace)
         except subprocess.TimeoutExpired:

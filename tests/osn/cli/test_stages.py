@@ -100,10 +100,16 @@ def test_background_failure_and_foreground_errors(tmp_path: Path) -> None:
     assert (tmp_path / "a" / ".done" / "bg.started.json").exists() and not (tmp_path / "a" / ".done" / "bg.json").exists()
 
     flag = tmp_path / "flag"
-    slow = BackgroundCommand(_python(f"import time, pathlib; time.sleep(3); pathlib.Path({str(flag)!r}).write_text('x')"),
-                             tmp_path / "slow.log")
+    ready = tmp_path / "ready"
+    # It ignores SIGINT, as a command started from a non-interactive shell's background job does.
+    slow = BackgroundCommand(_python(f"import signal, time, pathlib; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                                     f"pathlib.Path({str(ready)!r}).write_text('x'); time.sleep(3); "
+                                     f"pathlib.Path({str(flag)!r}).write_text('x')"), tmp_path / "slow.log")
 
     def broken() -> dict:
+        deadline = time.monotonic() + 60
+        while not ready.exists() and time.monotonic() < deadline:  # the command ignores SIGINT by now
+            time.sleep(0.01)
         raise RuntimeError("foreground failed")
 
     with pytest.raises(RuntimeError, match="foreground failed"):
