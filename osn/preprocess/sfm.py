@@ -376,7 +376,10 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
         opts = _mapper_options(cfg)
         opts.random_seed = opts.mapper.random_seed = cfg.seed + k
         (out_dir / str(k)).mkdir()
-        return pycolmap.incremental_mapping(db, img_dir, out_dir / str(k), options=opts)
+        # Side by side, each run reads its own copy: two mappers opening one database failed now
+        # and then ("No registered database factory succeeded", CI-like run of 2ed5d1b).
+        own = db if workers <= 1 else Path(shutil.copy(db, out_dir / str(k) / "database.db"))
+        return pycolmap.incremental_mapping(own, img_dir, out_dir / str(k), options=opts)
 
     restarts = range(max(cfg.mapper_restarts, 1))
     with ThreadPoolExecutor(max(1, min(workers, len(restarts))), thread_name_prefix="mapper") as pool:
