@@ -15,7 +15,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 STAMP  := $(VENV)/.installed
 TEST_STAMP := $(VENV)/.installed-test
 UV_VERSION := 0.13.9
-UV     := $(VENV)/bin/uv pip install --quiet --python $(PY) $(foreach d,$(FIND_LINKS),--find-links $(d))
+UV      = $(VENV)/bin/uv pip install --quiet --python $(PY) $(foreach d,$(FIND_LINKS),--find-links $(d))
 # uv reads no pip configuration: pass on pip's local wheel folders (--find-links; this machine's
 # CPU torch lies in one). Lazily expanded, so only the install recipes ask pip.
 FIND_LINKS ?= $(or $(PIP_FIND_LINKS),$(shell $(PY) -m pip config get global.find-links 2>/dev/null))
