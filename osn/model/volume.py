@@ -20,7 +20,7 @@ a finite range, so huge densities, empty rays and zero-length intervals stay fin
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import torch
@@ -179,10 +179,24 @@ class ShadedSamples:
     tau: torch.Tensor
     col: torch.Tensor
     skip_occluded: float
+    #: :meth:`alone`'s renders by (background, skip_occluded): filled on first use.
+    _alone: dict = field(default_factory=dict, repr=False, compare=False)
 
     def take(self, rows: torch.Tensor) -> "ShadedSamples":
         """The samples of the rays ``rows`` (indices into the batch)."""
         return ShadedSamples(self.t[rows], self.tau[rows], self.col[rows], self.skip_occluded)
+
+    def alone(self, dirs_cam: torch.Tensor, background: torch.Tensor, skip_occluded: float) -> RenderOutput:
+        """:func:`render` of this object alone on its whole ray batch, computed once and kept.
+
+        Every composite of the view reuses it on the rays that hit this object alone
+        (:func:`render_by_hits`): each ray's result depends on that ray's samples only, so the
+        rows taken from it equal a render of those rows.
+        """
+        key = (tuple(background.tolist()), float(skip_occluded))
+        if key not in self._alone:
+            self._alone[key] = render([self], dirs_cam, self.t.shape[1], None, background, skip_occluded)
+        return self._alone[key]
 
 
 def object_hits(obj: ObjectRays | ShadedSamples, dirs_cam: torch.Tensor) -> torch.Tensor:
@@ -372,7 +386,9 @@ def render_by_hits(
     ``log_seg (R, K)`` is each object's log share of the weights among the objects the ray hits
     and ``-inf`` for the others (:func:`render` floors every share at ``SEG_EPS`` instead); its
     argmax is :func:`render`'s wherever some object holds a share above ``SEG_EPS``. A ray that
-    hits nothing gets the background, opacity and depth 0.
+    hits nothing gets the background, opacity and depth 0. Rays that hit a single
+    :class:`ShadedSamples` object (the anchor alone, most rays of a candidate configuration) take
+    its :meth:`ShadedSamples.alone` render, made once for every configuration rendered with it.
     """
     R, K = dirs_cam.shape[0], len(objects)
     dev = dirs_cam.device
@@ -394,7 +410,11 @@ def render_by_hits(
         if not ks:  # hits nothing: the background
             continue
         rows = (group == g).nonzero().flatten()
-        out = render([objects[k].take(rows) for k in ks], dirs_cam[rows], n_samples, None, bg, skip_occluded)
+        if len(ks) == 1 and isinstance(objects[ks[0]], ShadedSamples) and objects[ks[0]].t.shape == (R, n_samples):
+            whole = objects[ks[0]].alone(dirs_cam, bg, skip_occluded)
+            out = RenderOutput(rgb=whole.rgb[rows], depth=whole.depth[rows], acc=whole.acc[rows], log_seg=whole.log_seg[rows])
+        else:
+            out = render([objects[k].take(rows) for k in ks], dirs_cam[rows], n_samples, None, bg, skip_occluded)
         rgb[rows], depth[rows], acc[rows] = out.rgb, out.depth, out.acc
         log_seg[rows[:, None], torch.tensor(ks, device=dev)[None, :]] = out.log_seg
     return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)

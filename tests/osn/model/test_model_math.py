@@ -259,6 +259,47 @@ def test_render_by_hits_equals_render_on_every_ray(skip: float) -> None:
     assert torch.all(out.acc[~hits.any(1)] == 0)
 
 
+def test_rays_that_hit_a_shaded_object_alone_reuse_its_render_in_every_configuration() -> None:
+    """Evaluation renders many configurations of one view with one shaded anchor: the rays that
+    cross the anchor alone take rows of one render of the anchor alone, made at the first
+    configuration and kept, bit for bit what rendering those rows gives, and the composite
+    still equals :func:`render` when the other object moves (another configuration)."""
+    n, S = 300, 16
+    g = torch.Generator().manual_seed(11)
+    dirs = torch.cat([0.5 * (2 * torch.rand(n, 2, generator=g) - 1), torch.ones(n, 1)], 1)
+    fields = []
+    for _ in range(2):
+        f = DenseGridField(BOX, 6)
+        with torch.no_grad():
+            f.grid.copy_(torch.randn(f.grid.shape, generator=g) * 2.0)
+            f.grid[:, 0] = f.grid[:, 0] * 2.0 + 3.0
+        fields.append(f)
+    anchor_pose = torch.eye(4)
+    anchor_pose[:3, 3] = torch.tensor([0.0, 0.0, -12.0]) / 4.0
+    anchor_pose[:3, :3] /= 4.0  # a box wider than the cone: every ray crosses the anchor
+    anchor = shade(ObjectRays(fields[0], anchor_pose.expand(n, 4, 4), torch.ones(n, dtype=torch.bool), torch.tensor([1e-3, 1e6])), dirs, S, 1e-3)
+    kept = None
+    for x in (-0.8, 0.0, 0.9):  # the object at three places: three configurations of the view
+        P = torch.eye(4)
+        P[:3, 3] = -torch.tensor([x, 0.2, 5.0]) / 0.8
+        P[:3, :3] /= 0.8
+        obj = ObjectRays(fields[1], P.expand(n, 4, 4), torch.ones(n, dtype=torch.bool), torch.tensor([1e-3, 1e6]))
+        hit = object_hits(obj, dirs)
+        assert 0 < int(hit.sum()) < n // 2
+        out = render_by_hits([anchor, obj], dirs, S, skip_occluded=1e-3)
+        ref = render([anchor, obj], dirs, S, skip_occluded=1e-3)
+        for a, b in ((ref.rgb, out.rgb), (ref.depth, out.depth), (ref.acc, out.acc)):
+            assert torch.allclose(a, b, atol=1e-6, rtol=0)
+        alone_rows = (~hit).nonzero().flatten()
+        direct = render([anchor.take(alone_rows)], dirs[alone_rows], S, None, torch.zeros(3), 1e-3)
+        assert torch.equal(out.rgb[alone_rows], direct.rgb) and torch.equal(out.depth[alone_rows], direct.depth)
+        assert torch.equal(out.acc[alone_rows], direct.acc)
+        assert len(anchor._alone) == 1  # one render of the anchor alone, made once
+        whole = next(iter(anchor._alone.values()))
+        assert kept is None or whole is kept
+        kept = whole
+
+
 def test_render_by_hits_groups_rays_with_more_objects_than_an_integer_has_bits() -> None:
     """70 objects (the ray's set no longer fits one 63-bit integer: rows are grouped directly):
     still every ray equals the full composite, and rays see different subsets. Depths are drawn at
