@@ -393,12 +393,17 @@ def covisibility_mask(
             raise ValueError(f"object_transforms must be ({T}, K, 4, 4), got {object_transforms.shape}")
         if ids.size and (ids.min() < 0 or ids.max() >= object_transforms.shape[1]):
             raise ValueError("a pixel with finite depth has no valid object id")
+    # Points grouped by object once: each group moves with one matrix per training frame (a
+    # per-point gather of (M, 4, 4) matrices in every frame took most of the time).
+    groups = [] if object_ids is None else [(k, np.flatnonzero(ids == k)) for k in np.unique(ids)]
     seen = np.zeros(points.shape[0], dtype=bool)
+    p = np.empty_like(points)
     for i in range(T):
-        p = points
-        if object_ids is not None:
-            A = object_transforms[i][ids]  # (M, 4, 4): each point's own object motion
-            p = np.einsum("mij,mj->mi", A[:, :3, :3], points) + A[:, :3, 3]
+        if object_ids is None:
+            p = points
+        for k, rows in groups:  # each point moves with its own object
+            A = object_transforms[i, k]
+            p[rows] = np.einsum("ij,mj->mi", A[:3, :3], points[rows]) + A[:3, 3]
         uv, zi = project(p, train_K[i], train_c2w[i])
         dmap = np.asarray(train_depths[i], dtype=np.float64)
         h, w = dmap.shape
