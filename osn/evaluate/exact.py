@@ -8,6 +8,7 @@ can be scored again with ``benchgen score``.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
@@ -19,6 +20,9 @@ from benchgen.score.predictions import SUFFIX, Candidate, check_candidate
 from benchgen.score.truth import Truth
 from osn.model.parallel import map_views
 from osn.model.run import TrainedRun
+
+#: Files :meth:`RenderedCandidates.write` writes at once.
+WRITE_THREADS = 4
 
 
 def render_candidates(
@@ -77,14 +81,26 @@ class RenderedCandidates:
         """Write every candidate (rendering those not yet rendered) as the prediction directory
         ``out`` (``CAND/{rgb,depth,ids}/NAME.*`` for the evaluated views, ``method.json``)."""
         out = Path(out)
-        for i, name in enumerate(self.names):
-            c = self.load(i)
+        cands = [self.load(i) for i in range(len(self))]
+
+        def write_one(i: int, v: int) -> None:
+            c, name, f = cands[i], self.names[i], self.truth.frames[v]
+            path = {kind: out / name / kind / (f.name + suffix) for kind, suffix in SUFFIX.items()}
+            D.write_rgb(path["rgb"], np.round(c.rgb[v] * 255.0).astype(np.uint8))  # 8-bit, as the dataset
+            D.write_depth(path["depth"], c.depth[v])
+            D.write_ids(path["ids"], c.ids[v])
+
+        for name in self.names:
             for kind in SUFFIX:
                 (out / name / kind).mkdir(parents=True, exist_ok=True)
-            for v, f in enumerate(self.truth.frames):
-                path = {kind: out / name / kind / (f.name + suffix) for kind, suffix in SUFFIX.items()}
-                D.write_rgb(path["rgb"], np.round(c.rgb[v] * 255.0).astype(np.uint8))  # 8-bit, as the dataset
-                D.write_depth(path["depth"], c.depth[v])
-                D.write_ids(path["ids"], c.ids[v])
+        # Threads: each file is encoded (the encoders let other threads run) and fsync-ed (a wait
+        # on the disk), so several at once keep both going; the first error is raised.
+        jobs = [(i, v) for i in range(len(self)) for v in range(len(self.truth.frames))]
+        pool = ThreadPoolExecutor(WRITE_THREADS, thread_name_prefix="write")
+        try:
+            for fut in [pool.submit(write_one, i, v) for i, v in jobs]:
+                fut.result()
+        finally:  # on an error, files not yet started are not written
+            pool.shutdown(wait=True, cancel_futures=True)
         atomic_write_json(out / "method.json", method)
         return out
