@@ -393,17 +393,21 @@ def covisibility_mask(
             raise ValueError(f"object_transforms must be ({T}, K, 4, 4), got {object_transforms.shape}")
         if ids.size and (ids.min() < 0 or ids.max() >= object_transforms.shape[1]):
             raise ValueError("a pixel with finite depth has no valid object id")
-    # Points grouped by object once: each group moves with one matrix per training frame (a
-    # per-point gather of (M, 4, 4) matrices in every frame took most of the time).
-    groups = [] if object_ids is None else [(k, np.flatnonzero(ids == k)) for k in np.unique(ids)]
+    # A point is co-visible when any frame saw it, so each frame checks only the points no frame
+    # before it saw (most points are seen in the first frames); each object's points move with
+    # one matrix per frame.
     seen = np.zeros(points.shape[0], dtype=bool)
-    p = np.empty_like(points)
+    todo = np.arange(points.shape[0])
     for i in range(T):
-        if object_ids is None:
-            p = points
-        for k, rows in groups:  # each point moves with its own object
-            A = object_transforms[i, k]
-            p[rows] = np.einsum("ij,mj->mi", A[:3, :3], points[rows]) + A[:3, 3]
+        if todo.size == 0:
+            break
+        p = points[todo]
+        if object_ids is not None:
+            todo_ids = ids[todo]
+            for k in np.unique(todo_ids):
+                rows = np.flatnonzero(todo_ids == k)
+                A = object_transforms[i, k]
+                p[rows] = p[rows] @ A[:3, :3].T + A[:3, 3]
         uv, zi = project(p, train_K[i], train_c2w[i])
         dmap = np.asarray(train_depths[i], dtype=np.float64)
         h, w = dmap.shape
@@ -412,7 +416,9 @@ def covisibility_mask(
         v = np.clip(np.floor(uv[:, 1]), 0, h - 1).astype(np.int64)
         d = dmap[v, u]
         with np.errstate(invalid="ignore"):  # inf - inf where the training pixel hit nothing
-            seen |= inside & np.isfinite(d) & (np.abs(zi - d) <= rtol * d)
+            ok = inside & np.isfinite(d) & (np.abs(zi - d) <= rtol * d)
+        seen[todo[ok]] = True
+        todo = todo[~ok]
     out = np.zeros(H * W, dtype=bool)
     out[hit] = seen
     return out.reshape(H, W)
@@ -431,18 +437,27 @@ def configured_depth(base_depth: np.ndarray, ids: np.ndarray, scales: Sequence[f
     return np.asarray(base_depth, dtype=np.float64) * factor
 
 
-def covisibility_transforms(scene: Scene, scales: Sequence[float], test_time: int) -> np.ndarray:
+def covisibility_transforms(scene: Scene, scales: Sequence[float], test_time: int, poses: np.ndarray | None = None) -> np.ndarray:
     """``(T, K, 4, 4)``: object k's map from the test time's world to training time t's world.
 
     In a configuration, object k at time t has pose ``P_k(t) = scene.configured_pose(k, t, s_k)``
     (scaled about the training camera centre of t), so a point x on k at the test time is at
     ``P_k(t) P_k(test_time)^-1 x`` at time t. Index t is the time index, so pass the training
-    frames to :func:`covisibility_mask` sorted by time.
+    frames to :func:`covisibility_mask` sorted by time. ``poses``: :func:`configuration_poses` of
+    the same configuration, when it is already at hand.
     """
-    T, K = len(scene.timestamps), scene.num_objects
+    poses = configuration_poses(scene, scales) if poses is None else poses
+    T, K = poses.shape[:2]
     out = np.empty((T, K, 4, 4))
     for k in range(K):
-        inv_test = invert_pose(scene.configured_pose(k, test_time, scales[k]))
+        inv_test = invert_pose(poses[test_time, k])
         for t in range(T):
-            out[t, k] = scene.configured_pose(k, t, scales[k]) @ inv_test
+            out[t, k] = poses[t, k] @ inv_test
     return out
+
+
+def configuration_poses(scene: Scene, scales: Sequence[float]) -> np.ndarray:
+    """``(T, K, 4, 4)``: every object's pose at every time index in a configuration
+    (``scene.configured_pose``), for :func:`covisibility_transforms` of many test times."""
+    T, K = len(scene.timestamps), scene.num_objects
+    return np.array([[scene.configured_pose(k, t, scales[k]) for k in range(K)] for t in range(T)]).reshape(T, K, 4, 4)

@@ -45,10 +45,11 @@ def configuration_masks(
     t_c2w = np.stack([f.camera_to_world for f in sorted(scene.train_frames, key=lambda f: f.time_index)])
     t_depths = [M.configured_depth(d, i, scales) for d, i in zip(train_depth, train_ids)]
     transforms: dict[int, np.ndarray] = {}  # per test time: they depend on the time only
+    poses = M.configuration_poses(scene, scales)
     out = np.zeros(depth.shape, bool)
     for v, f in enumerate(frames):
         if f.time_index not in transforms:
-            transforms[f.time_index] = M.covisibility_transforms(scene, scales, f.time_index)
+            transforms[f.time_index] = M.covisibility_transforms(scene, scales, f.time_index, poses)
         out[v] = M.covisibility_mask(
             depth[v], K, f.camera_to_world, t_depths, K, t_c2w,
             object_ids=np.where(ids[v] == D.NO_OBJECT, 0, ids[v]), object_transforms=transforms[f.time_index],

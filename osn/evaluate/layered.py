@@ -79,18 +79,27 @@ def composite_layers(layers: list[list[Layer]], level_idx: np.ndarray, backgroun
     return img + rest * torch.as_tensor(background, dtype=img.dtype)
 
 
-def masked_mse_matrix(images: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def masked_targets(gt: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """What :func:`masked_mse_matrix` needs of G targets ``(G, P, 3)`` and masks ``(G, P)``, which
+    do not change between chunks of images of one view: per target the mask per channel
+    ``(G, P*3)``, the masked target ``(G, P*3)``, its squared sum ``(G,)`` and mask size ``(G,)``."""
+    m3 = mask.double().repeat_interleave(3, dim=1)  # (G, P*3)
+    y = gt.reshape(gt.shape[0], -1).double()
+    return m3, m3 * y, (m3 * y * y).sum(1), m3.sum(1)
+
+
+def masked_mse_matrix(images: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor,
+                      targets: tuple[torch.Tensor, ...] | None = None) -> torch.Tensor:
     """MSE ``(n, G)`` of n images ``(n, P, 3)`` against G targets ``(G, P, 3)`` on masks ``(G, P)``.
 
     Three matrix products instead of an ``n x G x P`` tensor: sum m (x - y)^2 = x^2.m - 2 x.(m y) + m.y^2.
+    ``targets``: :func:`masked_targets` of ``gt`` and ``mask``, made once for many image chunks.
     """
     x = images.reshape(images.shape[0], -1).double()
-    m3 = mask.double().repeat_interleave(3, dim=1)  # (G, P*3)
-    y = gt.reshape(gt.shape[0], -1).double()
-    cnt = m3.sum(1).clamp_min(1.0)
-    sse = (x * x) @ m3.T - 2.0 * x @ (m3 * y).T + (m3 * y * y).sum(1)[None]
-    out = sse.clamp_min(0.0) / cnt[None]
-    return torch.where(m3.sum(1)[None] > 0, out, torch.full_like(out, float("nan")))
+    m3, my, my2, size = masked_targets(gt, mask) if targets is None else targets
+    sse = (x * x) @ m3.T - 2.0 * x @ my.T + my2[None]
+    out = sse.clamp_min(0.0) / size.clamp_min(1.0)[None]
+    return torch.where(size[None] > 0, out, torch.full_like(out, float("nan")))
 
 
 def layered_psnr(
@@ -108,10 +117,10 @@ def layered_psnr(
     def view(v: int) -> None:  # fills out[:, :, v], a slice no other view writes
         layers = render_layers(run, truth.frames[v], grids, base)
         y = torch.from_numpy(truth.masked_rgb[v].reshape(G, -1, 3)).double() / 255.0  # view-major: no copy
-        m = torch.from_numpy(truth.mask[v])
+        targets = masked_targets(y, torch.from_numpy(truth.mask[v]))
         for i in range(0, N, chunk):
             imgs = composite_layers(layers, idx[i : i + chunk], bg)
-            out[i : i + chunk, :, v] = M.psnr_from_mse(masked_mse_matrix(imgs, y, m).numpy())
+            out[i : i + chunk, :, v] = M.psnr_from_mse(masked_mse_matrix(imgs, y, None, targets).numpy())
 
     map_views(view, list(range(V)), run.device, "layered search" if echo is not None else None)
     return out

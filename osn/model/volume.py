@@ -372,6 +372,7 @@ def render_by_hits(
     n_samples: int,
     background: torch.Tensor | None = None,
     skip_occluded: float = 0.0,
+    reuse_alone: bool = True,
 ) -> RenderOutput:
     """:func:`render` (deterministic, no gradients) with each ray composited from the objects it
     hits only: rays are grouped by the set of objects whose box they cross, and each group is
@@ -388,7 +389,8 @@ def render_by_hits(
     argmax is :func:`render`'s wherever some object holds a share above ``SEG_EPS``. A ray that
     hits nothing gets the background, opacity and depth 0. Rays that hit a single
     :class:`ShadedSamples` object (the anchor alone, most rays of a candidate configuration) take
-    its :meth:`ShadedSamples.alone` render, made once for every configuration rendered with it.
+    its :meth:`ShadedSamples.alone` render, made once for every configuration rendered with it
+    (``reuse_alone=False`` renders them again each time, as before 2026-11-27: for benchmarks).
     """
     R, K = dirs_cam.shape[0], len(objects)
     dev = dirs_cam.device
@@ -410,7 +412,7 @@ def render_by_hits(
         if not ks:  # hits nothing: the background
             continue
         rows = (group == g).nonzero().flatten()
-        if len(ks) == 1 and isinstance(objects[ks[0]], ShadedSamples) and objects[ks[0]].t.shape == (R, n_samples):
+        if reuse_alone and len(ks) == 1 and isinstance(objects[ks[0]], ShadedSamples) and objects[ks[0]].t.shape == (R, n_samples):
             whole = objects[ks[0]].alone(dirs_cam, bg, skip_occluded)
             out = RenderOutput(rgb=whole.rgb[rows], depth=whole.depth[rows], acc=whole.acc[rows], log_seg=whole.log_seg[rows])
         else:

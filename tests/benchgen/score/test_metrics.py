@@ -495,6 +495,42 @@ def test_covisibility_follows_moving_objects():
         M.covisibility_mask(depth, K, cam, [train], K, [cam], object_ids=ids)
 
 
+def test_covisibility_over_many_frames_is_the_union_of_each_frame():
+    """A pixel is co-visible when any training frame saw it: the mask over several frames (each
+    checking only the points no earlier frame saw) equals the union of one-frame masks, with
+    objects that move differently in every frame and frames that each see a different part."""
+    W, H, T = 40, 12, 5
+    K = intrinsics_from_fov(60.0, W, H)
+    rng = np.random.default_rng(4)
+    ids = np.zeros((H, W), np.uint8)
+    depth = np.full((H, W), 6.0)
+    ids[:, 10:18], depth[:, 10:18] = 1, 3.0
+    ids[2:6, 25:33], depth[2:6, 25:33] = 2, 4.0
+    depth[0, :3] = np.inf  # no surface
+    cams = np.stack([forward_camera(x) for x in np.linspace(-1.5, 1.5, T)])
+    motion = np.tile(np.eye(4), (T, 3, 1, 1))
+    motion[:, 1:, 0, 3] = rng.uniform(-0.4, 0.4, (T, 2))  # each object moves its own way per frame
+    train = np.full((T, H, W), 6.0)
+    for i in range(T):  # occluders in a different place in every frame
+        c = 4 + 7 * i
+        train[i, :, c : c + 5] = 1.5
+    both = dict(object_ids=ids, object_transforms=motion)
+    full = M.covisibility_mask(depth, K, forward_camera(0.3), train, K, cams, **both)
+    union = np.zeros((H, W), bool)
+    singles = []
+    for i in range(T):
+        one = M.covisibility_mask(depth, K, forward_camera(0.3), train[i : i + 1], K, cams[i : i + 1],
+                                  object_ids=ids, object_transforms=motion[i : i + 1])
+        singles.append(one)
+        union |= one
+    assert np.array_equal(full, union)
+    assert not full[0, :3].any()
+    # The case it guards: pixels that only later frames saw (in at least two of them), and
+    # pixels no frame saw.
+    later = [(singles[i] & ~np.any(singles[:i], axis=0)).any() for i in range(1, T)]
+    assert sum(later) >= 2 and (~full).any()
+
+
 def test_covisibility_transforms_and_configured_depth():
     scene = make_scene(T=4, K=3)
     scales = [1.0, 0.7, 1.4]
