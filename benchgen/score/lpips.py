@@ -176,23 +176,28 @@ class LPIPS(nn.Module):
             feats.append(x)
         return feats
 
-    def layer_maps(self, x0: torch.Tensor, x1: torch.Tensor) -> list[torch.Tensor]:
-        """Per-layer distance maps ``(B, 1, h_l, w_l)`` at each layer's own resolution."""
-        maps = []
-        for lin, f0, f1 in zip(self.lins, self._features(x0), self._features(x1)):
-            # lpips.normalize_tensor: unit length over channels with eps 1e-10 added to the norm.
-            n0 = f0 / (f0.square().sum(1, keepdim=True).sqrt() + 1e-10)
-            n1 = f1 / (f1.square().sum(1, keepdim=True).sqrt() + 1e-10)
-            maps.append(lin((n0 - n1).square()))
-        return maps
+    def normalised_features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Per-layer features of ``x (B, 3, H, W)``, unit length over channels: what one image
+        brings to every distance it is in, so a caller may compute it once per image batch."""
+        # lpips.normalize_tensor: unit length over channels with eps 1e-10 added to the norm.
+        return [f / (f.square().sum(1, keepdim=True).sqrt() + 1e-10) for f in self._features(x)]
 
-    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+    def layer_maps(self, x0: torch.Tensor | list[torch.Tensor], x1: torch.Tensor | list[torch.Tensor]) -> list[torch.Tensor]:
+        """Per-layer distance maps ``(B, 1, h_l, w_l)`` at each layer's own resolution; either
+        input may be given as its :meth:`normalised_features`."""
+        n0 = x0 if isinstance(x0, list) else self.normalised_features(x0)
+        n1 = x1 if isinstance(x1, list) else self.normalised_features(x1)
+        return [lin((a - b).square()) for lin, a, b in zip(self.lins, n0, n1)]
+
+    def forward(self, x0: torch.Tensor | list[torch.Tensor], x1: torch.Tensor | list[torch.Tensor]) -> torch.Tensor:
         """LPIPS distance ``(B,)``: per-layer spatial means, summed (``lpips.LPIPS(spatial=False)``)."""
         return sum(m.mean((1, 2, 3)) for m in self.layer_maps(x0, x1))
 
-    def spatial(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
-        """Distance map ``(B, H, W)``: layer maps upsampled bilinearly and summed (``spatial=True``)."""
-        size = x0.shape[-2:]
+    def spatial(self, x0: torch.Tensor | list[torch.Tensor], x1: torch.Tensor | list[torch.Tensor],
+                size: tuple[int, int] | None = None) -> torch.Tensor:
+        """Distance map ``(B, H, W)``: layer maps upsampled bilinearly and summed (``spatial=True``);
+        ``size`` (the images' ``(H, W)``) is needed when both inputs are given as features."""
+        size = size or (x0 if isinstance(x1, list) else x1).shape[-2:]
         maps = [F.interpolate(m, size=size, mode="bilinear", align_corners=False) for m in self.layer_maps(x0, x1)]
         return sum(maps)[:, 0]
 

@@ -172,8 +172,33 @@ def ssim(pred: Array, gt: Array, mask: Array | None = None) -> Array | float:
 # -------------------------------------------------------------------------------------------- LPIPS
 
 
+def from_rgb8(rgb: np.ndarray) -> torch.Tensor:
+    """8-bit colour ``(..., 3)`` as float32 in [0, 1] (``rgb / 255``): a ground truth as SSIM and
+    LPIPS compare it."""
+    return torch.from_numpy(np.asarray(rgb) / np.float32(255.0))
+
+
+def _lpips_input(images: torch.Tensor) -> torch.Tensor:
+    """``(..., H, W, 3)`` in [0, 1] as the network's ``(B, 3, H, W)`` in [-1, 1], float32."""
+    H, W = images.shape[-3:-1]
+    return images.float().reshape(-1, H, W, 3).permute(0, 3, 1, 2) * 2 - 1
+
+
 @torch.no_grad()
-def lpips(pred: Array, gt: Array, mask: Array | None = None, batch_size: int = 64) -> Array | float:
+def lpips_features(images: Array, batch_size: int = 64) -> list[list[torch.Tensor]]:
+    """LPIPS's normalised features of ``images (..., H, W, 3)`` in [0, 1], per batch of
+    ``batch_size`` images as :func:`lpips` takes them: pass them as its ``pred_features`` or
+    ``gt_features`` when one image set is compared with many (a candidate with every ground
+    truth it matches, a ground truth with several candidate sets)."""
+    x = _lpips_input(_tensor(images))
+    model = get_model(x.device)
+    return [model.normalised_features(x[i : i + batch_size]) for i in range(0, x.shape[0], batch_size)]
+
+
+@torch.no_grad()
+def lpips(pred: Array, gt: Array, mask: Array | None = None, batch_size: int = 64,
+          pred_features: list[list[torch.Tensor]] | None = None, gt_features: list[list[torch.Tensor]] | None = None,
+          ) -> Array | float:
     """LPIPS v0.1, AlexNet, images in [0, 1] (scaled to [-1, 1] as ``lpips(..., normalize=True)``).
 
     Without ``mask``: the official value (per-layer spatial means, summed). With ``mask``: the
@@ -181,20 +206,21 @@ def lpips(pred: Array, gt: Array, mask: Array | None = None, batch_size: int = 6
     size and summed) averaged over masked pixels. The two differ slightly for an all-True mask,
     because bilinear upsampling does not preserve a map's mean at the borders.
     Computed in float32 on the inputs' device, ``batch_size`` images at a time.
+    ``pred_features`` / ``gt_features``: :func:`lpips_features` of ``pred`` / ``gt`` (same
+    ``batch_size``, after broadcasting), used instead of running the network on them again.
     """
     p, g, m = _images(pred, gt, mask)
-    p, g = p.float(), g.float()
     batch = p.shape[:-3]
     H, W = p.shape[-3:-1]
-    x0 = p.reshape(-1, H, W, 3).permute(0, 3, 1, 2) * 2 - 1
-    x1 = g.reshape(-1, H, W, 3).permute(0, 3, 1, 2) * 2 - 1
+    x0, x1 = _lpips_input(p), _lpips_input(g)
     if m is not None:
         m = m.expand(*batch, H, W).reshape(-1, H, W)
     model = get_model(p.device)
     out = []
-    for i in range(0, x0.shape[0], batch_size):
-        a, b = x0[i : i + batch_size], x1[i : i + batch_size]
-        out.append(model(a, b) if m is None else _masked_mean(model.spatial(a, b), m[i : i + batch_size]))
+    for j, i in enumerate(range(0, x0.shape[0], batch_size)):
+        a = pred_features[j] if pred_features is not None else x0[i : i + batch_size]
+        b = gt_features[j] if gt_features is not None else x1[i : i + batch_size]
+        out.append(model(a, b) if m is None else _masked_mean(model.spatial(a, b, (H, W)), m[i : i + batch_size]))
     return _result(torch.cat(out).reshape(batch), pred, gt, mask)
 
 

@@ -53,18 +53,21 @@ def _nanmean(x: Any) -> float:
 
 
 def match_metrics(
-    cand: Candidate, rgb: np.ndarray, depth: np.ndarray, ids: np.ndarray, mask: np.ndarray, with_lpips: bool
+    cand: Candidate, rgb: np.ndarray, depth: np.ndarray, ids: np.ndarray, mask: np.ndarray, with_lpips: bool,
+    lpips_features: tuple[list, list] | None = None,
 ) -> dict[str, float]:
     """Means over views of a candidate against one ground truth (without PSNR, which the pass has).
 
     ``rgb (V, H, W, 3)`` uint8, ``depth``/``ids``/``mask`` ``(V, H, W)``: the ground truth and its
     co-visibility masks. SSIM and LPIPS in float32 (as ``osn evaluate``); SSIMAE only when the
-    candidate has depth, PQ / mIoU (in percent) only when it has ids.
+    candidate has depth, PQ / mIoU (in percent) only when it has ids. ``lpips_features``: the
+    candidate's and the ground truth's :func:`metrics.lpips_features`, when already computed.
     """
-    pred, ref, m = _to_unit(cand.rgb).float(), torch.from_numpy(rgb / np.float32(255.0)), torch.from_numpy(mask)
+    pred, ref, m = _to_unit(cand.rgb).float(), M.from_rgb8(rgb), torch.from_numpy(mask)
     out = {"ssim": _nanmean(M.ssim(pred, ref, m))}
     if with_lpips:
-        out["lpips"] = _nanmean(M.lpips(pred, ref, m))
+        pf, gf = lpips_features if lpips_features is not None else (None, None)
+        out["lpips"] = _nanmean(M.lpips(pred, ref, m, pred_features=pf, gt_features=gf))
     if cand.depth is not None:
         out["ssimae"] = _nanmean(M.ssimae(torch.from_numpy(np.asarray(cand.depth, np.float64)), torch.from_numpy(depth.astype(np.float64)), m))
     if cand.ids is not None:
@@ -112,10 +115,14 @@ def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, worker
     with tqdm(total=truth.num_configurations, desc="matched metrics", unit="gt", disable=not progress, dynamic_ncols=True) as bar:
         for n in np.unique(best.indices):  # each matched candidate is loaded once
             cand = source.load(int(n))
+            # LPIPS's network runs once per image set: the candidate's here, each ground truth's
+            # kept by `truth` across candidate sets (the distances are the same, feature for feature).
+            pred_features = M.lpips_features(_to_unit(cand.rgb).float()) if with_lpips else None
             for g in np.flatnonzero(best.indices == n):
                 rgb, depth, ids = truth.views(int(g))
                 row = {"configuration": int(g), "match": source.names[n], "match_index": int(n), "psnr": float(best.scores[g])}
-                rows.append({**row, **match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips)})
+                feats = (pred_features, truth.lpips_features(int(g))) if with_lpips else None
+                rows.append({**row, **match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips, feats)})
                 bar.update()
     rows.sort(key=lambda r: r["configuration"])
     timings["metrics_s"] = time.perf_counter() - t0

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+import torch
 
 from scenecore import dataset as D
 from benchgen.score import metrics as M
@@ -61,6 +62,9 @@ def configuration_masks(
 #: fit in this many bytes: the scorer reads each configuration's views once per scored candidate
 #: set (``osn evaluate`` scores four), and on the demo those re-reads took 19 s under cProfile.
 VIEWS_CACHE_BYTES = 256 * 2**20
+#: LPIPS features :meth:`Truth.lpips_features` keeps, when every configuration's fit in this many
+#: bytes (the demo's: 50 x 3.8 MB); larger images compute them again for each candidate set.
+LPIPS_CACHE_BYTES = 512 * 2**20
 
 
 @dataclass
@@ -79,6 +83,7 @@ class Truth:
     masked_rgb: np.ndarray
     mask: np.ndarray
     _views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False, compare=False)
+    _lpips: dict[int, list] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def num_configurations(self) -> int:
@@ -99,6 +104,17 @@ class Truth:
                 a.setflags(write=False)
             self._views[g] = (rgb, depth, ids)
         return rgb, depth, ids
+
+    def lpips_features(self, g: int) -> list[list[torch.Tensor]]:
+        """:func:`metrics.lpips_features` of configuration g's colour (:func:`metrics.from_rgb8`),
+        kept for the next candidate set when every configuration's fit :data:`LPIPS_CACHE_BYTES`."""
+        if g in self._lpips:
+            return self._lpips[g]
+        feats = M.lpips_features(M.from_rgb8(self.views(g)[0]))
+        size = sum(t.numel() * t.element_size() for batch in feats for t in batch)
+        if self.num_configurations * size <= LPIPS_CACHE_BYTES:
+            self._lpips[g] = feats
+        return feats
 
     def first_views(self, v: int) -> "Truth":
         """The same ground truths restricted to the first ``v`` evaluated views (no copy)."""

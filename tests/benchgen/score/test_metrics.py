@@ -223,6 +223,25 @@ def test_lpips_batched_and_chunked():
     assert np.allclose(out, [M.lpips(*p) for p in pairs], rtol=1e-5)
 
 
+def test_lpips_from_kept_features_equals_lpips_from_the_images():
+    """The scorer runs LPIPS's network once per image set (a candidate against every ground truth
+    it matches, a ground truth against every candidate set): distances from those features are
+    the ones from the images, bit for bit, masked or not, over several batches; features of
+    other images give other distances."""
+    rng = np.random.default_rng(8)
+    pairs = [image_pair(rng, (48, 48), 0.1) for _ in range(5)]
+    a = torch.from_numpy(np.stack([p[0] for p in pairs]).astype(np.float32))
+    b = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.float32))
+    mask = torch.from_numpy(rng.random((5, 48, 48)) > 0.3)
+    fa, fb = M.lpips_features(a, batch_size=2), M.lpips_features(b, batch_size=2)
+    assert len(fa) == 3  # batches of 2, 2 and 1 images
+    for m in (None, mask):
+        ref = M.lpips(a, b, m, batch_size=2)
+        for pf, gf in ((fa, None), (None, fb), (fa, fb)):
+            assert torch.equal(M.lpips(a, b, m, batch_size=2, pred_features=pf, gt_features=gf), ref)
+        assert not torch.equal(M.lpips(a, b, m, batch_size=2, pred_features=fb, gt_features=fb), ref)
+
+
 def test_lpips_missing_weights_error_says_how_to_install(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"make setup.*python -m benchgen.score.lpips install"):
         L.load_weights(tmp_path / "absent.npz")

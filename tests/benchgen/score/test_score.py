@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from scenecore import dataset as D
@@ -285,3 +286,10 @@ def test_truth_views_are_read_once_when_small(tiny_dataset, monkeypatch):
     fresh = load_truth(tiny_dataset, max_views=3)
     one, two = fresh.views(1), fresh.views(1)
     assert all(a is not b and np.array_equal(a, b) for a, b in zip(one, two)) and one[0].flags.writeable
+    # LPIPS features of a configuration: those of its colour, kept the same way.
+    feats = truth.lpips_features(1)
+    ref = M.lpips_features(M.from_rgb8(truth.views(1)[0]))
+    assert all(torch.equal(a, b) for fa, fb in zip(feats, ref) for a, b in zip(fa, fb))
+    assert truth.lpips_features(1) is feats
+    monkeypatch.setattr(T, "LPIPS_CACHE_BYTES", 0)
+    assert fresh.lpips_features(1) is not fresh.lpips_features(1)
