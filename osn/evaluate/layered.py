@@ -64,12 +64,23 @@ def render_layers(run: TrainedRun, frame: D.Frame, grids: list[np.ndarray], base
     return out
 
 
-def composite_layers(layers: list[list[Layer]], level_idx: np.ndarray, background: np.ndarray) -> torch.Tensor:
-    """Approximate images ``(n, P, 3)`` of n samples: their objects' layers over-composited by depth."""
-    n, K = level_idx.shape
-    col = torch.stack([torch.stack([layers[k][q].color for k, q in enumerate(row)]) for row in level_idx])  # (n,K,P,3)
-    alpha = torch.stack([torch.stack([layers[k][q].alpha for k, q in enumerate(row)]) for row in level_idx])
-    depth = torch.stack([torch.stack([layers[k][q].depth for k, q in enumerate(row)]) for row in level_idx])
+def stack_layers(layers: list[list[Layer]]) -> list[Layer]:
+    """Per object its Q layers as one :class:`Layer` of ``(Q, P, ...)`` tensors (what
+    :func:`composite_layers` indexes; made once per view instead of once per chunk of samples)."""
+    return [Layer(torch.stack([q.color for q in per]), torch.stack([q.alpha for q in per]), torch.stack([q.depth for q in per]))
+            for per in layers]
+
+
+def composite_layers(layers: list[list[Layer]] | list[Layer], level_idx: np.ndarray, background: np.ndarray) -> torch.Tensor:
+    """Approximate images ``(n, P, 3)`` of n samples: their objects' layers over-composited by depth.
+
+    ``layers``: per object its layers (``layers[k][q]``), or :func:`stack_layers` of them."""
+    stacked = layers if layers and isinstance(layers[0], Layer) else stack_layers(layers)
+    idx = torch.as_tensor(np.asarray(level_idx, dtype=np.int64))
+    n, K = idx.shape
+    col = torch.stack([stacked[k].color[idx[:, k]] for k in range(K)], 1)  # (n, K, P, 3)
+    alpha = torch.stack([stacked[k].alpha[idx[:, k]] for k in range(K)], 1)
+    depth = torch.stack([stacked[k].depth[idx[:, k]] for k in range(K)], 1)
     order = torch.argsort(depth, dim=1)
     alpha = torch.gather(alpha, 1, order)
     col = torch.gather(col, 1, order[..., None].expand_as(col))
@@ -115,7 +126,7 @@ def layered_psnr(
     out = np.full((N, G, V), np.nan)
 
     def view(v: int) -> None:  # fills out[:, :, v], a slice no other view writes
-        layers = render_layers(run, truth.frames[v], grids, base)
+        layers = stack_layers(render_layers(run, truth.frames[v], grids, base))
         y = torch.from_numpy(truth.masked_rgb[v].reshape(G, -1, 3)).double() / 255.0  # view-major: no copy
         targets = masked_targets(y, torch.from_numpy(truth.mask[v]))
         for i in range(0, N, chunk):
