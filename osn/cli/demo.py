@@ -327,11 +327,11 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
     bench = {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}
-    gt: list[BackgroundCommand] = []  # the ground truth's job once started, for the train stage
+    jobs: dict[str, BackgroundCommand] = {}  # background stages' jobs once started (this invocation)
 
     def start_ground_truth() -> BackgroundCommand:
-        gt.append(stage_ground_truth(args, p))
-        return gt[-1]
+        jobs["ground-truth"] = stage_ground_truth(args, p)
+        return jobs["ground-truth"]
 
     stages = [
         Stage("generate", f"benchgen: render the {args.preset} training video, its exact region and configurations",
@@ -348,7 +348,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         Stage("ground-truth", "benchgen: render every configuration's test views and verify them", start_ground_truth,
               bench, background=True),
         Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",
-              lambda: stage_train(args, p, train_cfg, gt[-1] if gt else None), {"inputs": args.inputs, **train_options}),
+              lambda: stage_train(args, p, train_cfg, jobs.get("ground-truth")), {"inputs": args.inputs, **train_options}),
         Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
               {"n": args.n, "threshold": args.threshold, "seed": args.seed}),
         Stage("evaluate", "best-of-N evaluation against every ground truth", partial(stage_evaluate, args, p),

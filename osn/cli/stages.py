@@ -89,8 +89,8 @@ def run_stages(stages: list[Stage], workdir: str | Path, echo: Callable[[str], N
             raise ValueError(f"stage {st.name!r} needs {bad}, which are not earlier background stages")
     running: dict[str, _Running] = {}
 
-    def record_started(name: str, r: _Running) -> None:  # the time spent so far, for a resumed run
-        atomic_write_json(done_dir / f"{name}.started.json", {"options": r.options, "seconds": r.spent + time.perf_counter() - r.t0})
+    def record_started(name: str, r: _Running) -> None:
+        _record_started(done_dir, name, r.options, r.spent + time.perf_counter() - r.t0)
 
     def finish(name: str) -> None:
         r = running.pop(name)
@@ -126,6 +126,12 @@ def run_stages(stages: list[Stage], workdir: str | Path, echo: Callable[[str], N
     return records
 
 
+def _record_started(done_dir: Path, name: str, options: dict[str, Any], seconds: float) -> None:
+    """A started stage's record (``.started.json``): its options, and the time spent on it so far,
+    which a resumed run adds its own to."""
+    atomic_write_json(done_dir / f"{name}.started.json", {"options": options, "seconds": seconds})
+
+
 def _run_one(st: Stage, i: int, n: int, done_dir: Path, records: dict[str, dict], running: dict[str, _Running],
              echo: Callable[[str], None]) -> None:
     """Skip, run, or (background) start stage ``st``, number ``i`` of ``n``."""
@@ -145,12 +151,12 @@ def _run_one(st: Stage, i: int, n: int, done_dir: Path, records: dict[str, dict]
     spent = float(before.get("seconds", 0.0)) if before else 0.0
     echo(f"[{i}/{n}] {st.name}: {st.description}" + (f" (resuming after {spent:.0f} s)" if before else "")
          + (" (in the background)" if st.background else ""))
-    atomic_write_json(started, {"options": options, "seconds": spent})
+    _record_started(done_dir, st.name, options, spent)
     t0 = time.perf_counter()
     try:
         result = st.run()
     except BaseException:  # keep the time spent, so a resumed stage reports its whole cost
-        atomic_write_json(started, {"options": options, "seconds": spent + time.perf_counter() - t0})
+        _record_started(done_dir, st.name, options, spent + time.perf_counter() - t0)
         raise
     if st.background:
         running[st.name] = _Running(result, i, options, spent, t0)
