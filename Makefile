@@ -15,10 +15,10 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 STAMP  := $(VENV)/.installed
 TEST_STAMP := $(VENV)/.installed-test
 UV_VERSION := 0.13.9
-UV      = $(VENV)/bin/uv pip install --quiet --python $(PY) $(foreach d,$(FIND_LINKS),--find-links $(d))
+UV      = $(VENV)/bin/uv pip install --quiet --compile-bytecode --python $(PY) $(foreach d,$(FIND_LINKS),--find-links $(d))
 # uv compiles no bytecode by default, and where PYTHONDONTWRITEBYTECODE is set (as on this build
-# machine) Python then compiles torch on every import (+7 s a process): the last install of each
-# step passes --compile-bytecode, which compiles the whole venv (4 s when little changed).
+# machine) Python then compiles torch on every import (+7 s a process): every install passes
+# --compile-bytecode, which compiles what that install put in the venv (not what was there).
 # uv reads no pip configuration: pass on pip's local wheel folders (--find-links; this machine's
 # CPU torch lies in one). Lazily expanded, so only the install recipes ask pip.
 FIND_LINKS ?= $(or $(PIP_FIND_LINKS),$(shell $(PYTHON) -m pip config get global.find-links 2>/dev/null))
@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml Makefile
 	@# TORCH_SPEC first, so the installer never resolves torch itself (that would pull CUDA packages).
 	@$(PY) -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '$(TORCH_VERSION)')" >/dev/null 2>&1 \
 		|| $(UV) $(TORCH_SPEC)
-	$(UV) --compile-bytecode -e ".[render]"
+	$(UV) -e ".[render]"
 	@# LPIPS AlexNet v0.1 weights for offline evaluation, fetched and converted once (idempotent).
 	$(PY) -m benchgen.score.lpips install
 	@touch $(STAMP)
@@ -46,7 +46,7 @@ $(TEST_STAMP): $(STAMP)
 	$(UV) -e ".[render,test]"
 	@# Reference for the LPIPS tests: lpips' shipped heads only. --no-deps because its declared
 	@# torchvision would pull a CUDA torch; nothing imports it outside tests.
-	$(UV) --compile-bytecode --no-deps lpips==0.1.4
+	$(UV) --no-deps lpips==0.1.4
 	@touch $(TEST_STAMP)
 
 test: $(TEST_STAMP)
