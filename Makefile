@@ -5,7 +5,7 @@
 # whatever the installer finds for the pin; on this build machine a local CPU wheel. Elsewhere pass
 # the index: TORCH_SPEC="torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" or .../cu126).
 # Packages are installed by uv (pinned, itself installed into the venv by pip): the same versions
-# pip resolves, in 52-61 s instead of pip's ~110 s here (empty uv cache), 6 s instead of 30 s for the test tools.
+# pip resolves, in about 70 s instead of pip's ~120 s here (empty uv cache), seconds for the test tools.
 
 PYTHON ?= python3.11
 VENV   ?= .venv
