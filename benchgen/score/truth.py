@@ -63,7 +63,7 @@ def configuration_masks(
 #: set (``osn evaluate`` scores four), and on the demo those re-reads took 19 s under cProfile.
 VIEWS_CACHE_BYTES = 256 * 2**20
 #: LPIPS features :meth:`Truth.lpips_features` keeps, when every configuration's fit in this many
-#: bytes (the demo's: 50 x 3.8 MB); larger images compute them again for each candidate set.
+#: bytes (the demo's, counted from the feature shapes: 50 x 3.8 MB); larger images compute them again.
 LPIPS_CACHE_BYTES = 512 * 2**20
 
 
