@@ -106,6 +106,28 @@ def psnr(pred: Array, gt: Array, mask: Array | None = None) -> Array | float:
     return _result(psnr_from_mse(mse), pred, gt, mask)
 
 
+def squared_error_by_id(pred: Array, gt: Array, ids: Array, num_ids: int, mask: Array | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where the error is: squared error summed per ground-truth object.
+
+    ``pred``, ``gt`` ``(..., H, W, 3)`` in [0, 1]; ``ids`` ``(..., H, W)`` the ground truth's object
+    ids; ``mask`` as for :func:`psnr`. Returns float64 ``sse (num_ids + 1,)``, the sum over (masked)
+    pixels of the channel-mean squared error, and ``pixels (num_ids + 1,)``, their count: slot k
+    for the pixels whose id is k in ``0..num_ids-1``, the last slot for every other id (no object,
+    255). ``sse.sum() / pixels.sum()`` is :func:`psnr`'s MSE over all the pixels at once, and
+    ``psnr_from_mse(sse[k] / pixels[k])`` object k's PSNR on its own pixels.
+    """
+    p, g, m = _images(pred, gt, mask)
+    k = ids.to(p.device).long() if isinstance(ids, torch.Tensor) else torch.from_numpy(np.array(ids, dtype=np.int64)).to(p.device)
+    if k.shape != p.shape[:-1]:
+        raise ValueError(f"ids of shape {tuple(k.shape)} do not match images {tuple(p.shape[:-1])}")
+    slot = torch.where((k >= 0) & (k < num_ids), k, torch.full_like(k, num_ids)).reshape(-1)
+    err = (p - g).square().mean(-1).reshape(-1).double()
+    keep = torch.ones_like(slot, dtype=torch.bool) if m is None else m.expand(p.shape[:-1]).reshape(-1)
+    sse = torch.bincount(slot[keep], weights=err[keep], minlength=num_ids + 1)
+    pixels = torch.bincount(slot[keep], minlength=num_ids + 1).double()
+    return sse.cpu().numpy(), pixels.cpu().numpy()
+
+
 # --------------------------------------------------------------------------------------------- SSIM
 
 

@@ -39,7 +39,7 @@ def metrics_json(res: ScoreResult, method: dict[str, Any], command: str, dataset
         "format": FORMAT, "version": VERSION, "command": command, "method": method,
         "dataset": dataset, "predictions": predictions, **res.info,
         "summary": res.summary, "per_ground_truth": res.per_ground_truth, "curves": res.curves,
-        "timings": res.timings, "candidates": res.names,
+        "timings": res.timings, "candidates": res.names, "error_by_object": res.by_object,
     })
 
 
@@ -48,6 +48,23 @@ def results_table(summary: dict[str, dict[str, float]], label: str) -> str:
     cols = [m for m in METRICS if m[0] in summary]
     cell = [f"{f.format(summary[k]['mean'])} ± {f.format(summary[k]['std'])}" for k, _, f in cols]
     return "\n".join([f"| method | {' | '.join(c[1] for c in cols)} |", "|---|" + "---|" * len(cols), f"| {label} | {' | '.join(cell)} |"])
+
+
+def by_object_table(by_method: dict[str, dict[str, Any]]) -> str:
+    """Markdown table of :func:`scorer.error_by_object` for one or more candidate sets scored on the
+    same ground truths: one row per ground-truth object with its share of the evaluated pixels,
+    then per set the PSNR on that object's pixels and, in brackets, its share of the squared error."""
+    first = next(iter(by_method.values()))
+    lines = ["| object | share of pixels | " + " | ".join(f"{name}: PSNR (share of error)" for name in by_method) + " |",
+             "|---|---|" + "---|" * len(by_method)]
+    for k, obj in enumerate(first["objects"]):
+        cells = [f"{b['psnr'][k]:.2f} ({100 * b['error_share'][k]:.1f}%)" for b in by_method.values()]
+        lines.append(f"| {obj} | {100 * first['pixel_share'][k]:.1f}% | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+BY_OBJECT_NOTE = ("Where the error is, by the ground truth's objects (matched candidates, every ground truth's "
+                  "co-visible pixels pooled; `scorer.error_by_object`):")
 
 
 def _save_fig(fig: Any, path: Path) -> None:
@@ -112,6 +129,7 @@ def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plot
         f"mean PSNR over its views ({i['distinct_matches']} distinct candidates matched); metrics are mean ± std "
         "over the ground truths.", "",
         results_table(res.summary, label), "",
+        *([BY_OBJECT_NOTE, "", by_object_table({label: res.by_object}), ""] if res.by_object else []),
         "| time | seconds |", "|---|---|",
         *[f"| {k.removesuffix('_s').replace('_', ' ')} | {v:.1f} |" for k, v in t.items()], "",
         *[f"![{p}]({p})" for p in plots], "",

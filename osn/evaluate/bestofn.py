@@ -173,9 +173,11 @@ def evaluate(
 
     t0 = time.perf_counter()
     table = {f"best of {len(samples.sbar)}": _table_row(res)}
+    by_object = {f"best of {len(samples.sbar)}": res.by_object}
     for name, sbar in single_solutions(samples).items():  # each the only candidate against all G
         rendered[name] = RenderedCandidates(run, truth, {name.replace(" ", "-"): sbar})
-        table[name] = _table_row(score(truth, rendered[name], cfg.lpips))
+        res_single = score(truth, rendered[name], cfg.lpips)
+        table[name], by_object[name] = _table_row(res_single), res_single.by_object
     timings["baselines_s"] = time.perf_counter() - t0
     true_extra: dict[str, Any] = {}
     if cfg.true_scales:
@@ -183,7 +185,7 @@ def evaluate(
         if candidates_dir is None:
             rendered.clear()  # renders are kept only to be written: free them before G more
         rendered[TRUE_SCALES], res_true = true_scales_candidates(run, truth, cfg.lpips)
-        table[TRUE_SCALES] = _table_row(res_true)
+        table[TRUE_SCALES], by_object[TRUE_SCALES] = _table_row(res_true), res_true.by_object
         own = [r["match_index"] == g for g, r in enumerate(res_true.per_ground_truth)]
         true_extra = {"true_scales_psnr": [r["psnr"] for r in res_true.per_ground_truth],
                       "true_scales_own_match": float(np.mean(own))}
@@ -213,6 +215,7 @@ def evaluate(
         **ground_truth_outside_box(run, truth.scales),
         **unposed_object_pixels(run, truth),
         **true_extra,
+        "error_by_object": by_object,
     }
     return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra)
 

@@ -14,11 +14,10 @@ import io
 import numpy as np
 
 from scenecore.dataset import atomic_write_bytes, atomic_write_json, read_json
+from benchgen.score.report import BY_OBJECT_NOTE, by_object_table
+from benchgen.score.scorer import METRICS
 from osn.evaluate.bestofn import TRUE_SCALES, EvalResult
 from osn.train import read_metrics
-
-METRICS = [("psnr", "PSNR ↑", "{:.2f}"), ("ssim", "SSIM ↑", "{:.3f}"), ("lpips", "LPIPS ↓", "{:.3f}"),
-           ("ssimae", "SSIMAE ↓", "{:.3f}"), ("pq", "PQ ↑", "{:.1f}"), ("miou", "mIoU ↑", "{:.1f}")]
 
 
 def _unposed_lines(e: dict[str, Any]) -> list[str]:
@@ -221,6 +220,7 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         *_unposed_lines(e),
         results_table(res.table),
         "",
+        *([BY_OBJECT_NOTE, "", by_object_table(e["error_by_object"]), ""] if e.get("error_by_object") else []),
         "| figure | value |",
         "|---|---|",
         f"| valid-set IoU / precision / recall (exact region{_region_note(v)}) | {v['iou']:.3f} / {v['precision']:.3f} / {v['recall']:.3f} |",

@@ -293,3 +293,53 @@ def test_truth_views_are_read_once_when_small(tiny_dataset, monkeypatch):
     assert truth.lpips_features(1) is feats
     monkeypatch.setattr(T, "LPIPS_CACHE_BYTES", 0)
     assert fresh.lpips_features(1) is not fresh.lpips_features(1)
+
+
+def test_error_by_object_puts_the_error_on_the_object_that_carries_it(tiny_dataset, tmp_path):
+    """A copy of configuration 0 with one object's pixels brightened: against ground truth 0 all the
+    squared error lies on that object's pixels, the sums are the PSNR's, and the report shows it."""
+    pred = make_pred(tiny_dataset, tmp_path / "pred", {"only": 0})
+    scene = D.load_scene(tiny_dataset)
+    k = next(o.id for o in scene.objects if o.role != "anchor")
+    for name in frame_names(tiny_dataset):
+        ids = D.read_ids(tiny_dataset / "configs" / D.config_dirname(0) / "ids" / f"{name}.png")
+        rgb = D.read_rgb(pred / "only" / "rgb" / f"{name}.png").astype(int)
+        rgb[ids == k] = np.clip(rgb[ids == k] + 40, 0, 255)
+        Image.fromarray(rgb.astype(np.uint8)).save(pred / "only" / "rgb" / f"{name}.png")
+    assert run(pred, tiny_dataset, tmp_path / "out", "--no-lpips") == 0
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    truth = load_truth(tiny_dataset)
+    cand = np.stack([D.read_rgb(pred / "only" / "rgb" / f"{f.name}.png") for f in truth.frames]) / 255.0
+    rgb, _, ids = truth.views(0)
+    mask = truth.masks(0)
+    row = m["per_ground_truth"][0]
+    sq = ((cand - rgb / 255.0) ** 2).mean(-1)
+    on_k = mask & (ids == k)
+    assert on_k.any() and row["object_pixels"][k] == int(on_k.sum()) and sum(row["object_pixels"]) == int(mask.sum())
+    assert row["object_sse"][k] == pytest.approx(float(sq[on_k].sum()), rel=1e-12) and row["object_sse"][k] > 0
+    assert [s for j, s in enumerate(row["object_sse"]) if j != k] == [0.0] * scene.num_objects
+    # Pooled over the three ground truths: total error over total pixels is the PSNR of all pixels at once.
+    b = m["error_by_object"]
+    sse = np.sum([r["object_sse"] for r in m["per_ground_truth"]], 0)
+    px = np.sum([r["object_pixels"] for r in m["per_ground_truth"]], 0)
+    assert b["psnr_all"] == pytest.approx(float(M.psnr_from_mse(sse.sum() / px.sum())), rel=1e-12)
+    assert sum(b["error_share"]) == pytest.approx(1.0) and sum(b["pixel_share"]) == pytest.approx(1.0)
+    assert b["objects"][k] == scene.objects[k].name
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "Where the error is" in report and f"| {scene.objects[k].name} | {100 * b['pixel_share'][k]:.1f}% |" in report
+
+
+def test_squared_error_by_id_splits_the_psnr_error():
+    rng = np.random.default_rng(3)
+    pred, gt = rng.random((2, 4, 8, 8, 3)), rng.random((4, 8, 8, 3))
+    ids = rng.choice([0, 1, 2, 255, 7], size=(4, 8, 8))
+    mask = rng.random((4, 8, 8)) > 0.3
+    sse, px = M.squared_error_by_id(pred[0], gt, ids, 3, mask)
+    sq = ((pred[0] - gt) ** 2).mean(-1)
+    other = mask & ~np.isin(ids, [0, 1, 2])  # 255 and an id past num_ids share the last slot
+    assert px.tolist() == [(mask & (ids == j)).sum() for j in range(3)] + [other.sum()]
+    assert sse == pytest.approx([sq[mask & (ids == j)].sum() for j in range(3)] + [sq[other].sum()], rel=1e-12)
+    assert M.psnr_from_mse(sse.sum() / px.sum()) == pytest.approx(M.psnr(pred[0].reshape(1, 32, 8, 3), gt.reshape(1, 32, 8, 3), mask.reshape(1, 32, 8)), rel=1e-12)
+    assert M.squared_error_by_id(pred[0], gt, ids, 3)[1].sum() == 4 * 64  # no mask: every pixel
+    with pytest.raises(ValueError, match="ids of shape"):
+        M.squared_error_by_id(pred[0], gt, ids[:2], 3)

@@ -72,6 +72,11 @@ def test_outputs_are_sensible(demo):
     assert len(m["extra"]["true_scales_psnr"]) == 3
     report = (demo / "report" / "report.md").read_text()
     assert "| true scales |" in report and "match their own scales" in report
+    # Where each row's error lies, by the ground truth's objects: every row scored on the same pixels.
+    by = m["extra"]["error_by_object"]
+    assert list(by) == list(table) and "Where the error is" in report
+    assert all(b["pixel_share"] == by["true scales"]["pixel_share"] for b in by.values())
+    assert all(abs(sum(b["error_share"]) - 1.0) < 1e-9 for b in by.values())
     assert "Inputs: **oracle**" in report and "not the method as published" in report  # the ablation is labelled
     assert report.count("![") >= 3
     row = next(ln for ln in report.splitlines() if ln.startswith("| training time"))
