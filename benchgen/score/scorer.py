@@ -69,11 +69,11 @@ def match_metrics(
     :func:`metrics.squared_error_by_id` by the ground truth's ids. ``pred``: the candidate's colour
     as float64 in [0, 1], when already converted.
     """
-    pred64 = _to_unit(cand.rgb) if pred is None else pred
-    pred, ref, m = pred64.float(), M.from_rgb8(rgb), torch.from_numpy(mask)
+    pred = (_to_unit(cand.rgb) if pred is None else pred).float()
+    ref, m = M.from_rgb8(rgb), torch.from_numpy(mask)
     out: dict[str, Any] = {"ssim": _nanmean(M.ssim(pred, ref, m))}
-    if num_objects:
-        sse, px = M.squared_error_by_id(pred64, _to_unit(rgb), ids, num_objects, m)
+    if num_objects:  # float32 as SSIM's inputs: no float64 copy of the ground truth (large test sets)
+        sse, px = M.squared_error_by_id(pred, ref, ids, num_objects, m)
         out["object_sse"], out["object_pixels"] = sse.tolist(), px.astype(np.int64).tolist()
     if with_lpips:
         pf, gf = lpips_features if lpips_features is not None else (None, None)
