@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from scenecore import dataset as D
+from benchgen.score import covisibility as C
 from benchgen.score import metrics as M
 from benchgen.score.parallel import ordered_map
 
@@ -40,18 +41,18 @@ def configuration_masks(
     ``depth``/``ids`` ``(V, H, W)`` are the configuration's ground truth on those views;
     ``train_depth``/``train_ids`` ``(T, H, W)`` the stored (base) training video in time order.
     Each test pixel's surface point moves with its object to every training time and is
-    co-visible when a training frame of this configuration saw it (:func:`metrics.covisibility_mask`).
+    co-visible when a training frame of this configuration saw it (:func:`covisibility.covisibility_mask`).
     """
     K = scene.intrinsics.matrix()
     t_c2w = np.stack([f.camera_to_world for f in sorted(scene.train_frames, key=lambda f: f.time_index)])
-    t_depths = [M.configured_depth(d, i, scales) for d, i in zip(train_depth, train_ids)]
+    t_depths = [C.configured_depth(d, i, scales) for d, i in zip(train_depth, train_ids)]
     transforms: dict[int, np.ndarray] = {}  # per test time: they depend on the time only
-    poses = M.configuration_poses(scene, scales)
+    poses = C.configuration_poses(scene, scales)
     out = np.zeros(depth.shape, bool)
     for v, f in enumerate(frames):
         if f.time_index not in transforms:
-            transforms[f.time_index] = M.covisibility_transforms(scene, scales, f.time_index, poses)
-        out[v] = M.covisibility_mask(
+            transforms[f.time_index] = C.covisibility_transforms(scene, scales, f.time_index, poses)
+        out[v] = C.covisibility_mask(
             depth[v], K, f.camera_to_world, t_depths, K, t_c2w,
             object_ids=np.where(ids[v] == D.NO_OBJECT, 0, ids[v]), object_transforms=transforms[f.time_index],
         )

@@ -15,6 +15,7 @@ from skimage.metrics import structural_similarity
 
 from scenecore.cameras import intrinsics_from_fov
 from benchgen.score import lpips as L
+from benchgen.score import covisibility as C
 from benchgen.score import metrics as M
 from tests.synthetic import make_scene
 
@@ -467,7 +468,7 @@ def test_covisibility_frustum_and_occlusion_static():
     train = np.full((H, W), Z)
     train[:, 20:28] = 2.0  # an occluder in front of the wall in 8 columns of the training frame
     shift = 1.0
-    mask = M.covisibility_mask(depth, K, forward_camera(shift), train[None], K, forward_camera(0.0)[None])
+    mask = C.covisibility_mask(depth, K, forward_camera(shift), train[None], K, forward_camera(0.0)[None])
     # Test column u sees wall point x = shift + (u + .5 - cx) Z / f; the training camera sees it
     # at column u' = f x / Z + cx: covisible iff u' is in the image and not in 20..27.
     u_train = f * (shift + (np.arange(W) + 0.5 - cx) * Z / f) / Z + cx
@@ -479,10 +480,10 @@ def test_covisibility_frustum_and_occlusion_static():
     # No surface: never covisible; a depth within rtol is consistent, beyond it is not.
     depth_sky = depth.copy()
     depth_sky[3, :] = np.inf
-    assert not M.covisibility_mask(depth_sky, K, forward_camera(shift), train[None], K, forward_camera(0.0)[None])[3].any()
-    same = M.covisibility_mask(depth * 1.02, K, forward_camera(0.0), [depth], K, [forward_camera(0.0)], rtol=0.03)
+    assert not C.covisibility_mask(depth_sky, K, forward_camera(shift), train[None], K, forward_camera(0.0)[None])[3].any()
+    same = C.covisibility_mask(depth * 1.02, K, forward_camera(0.0), [depth], K, [forward_camera(0.0)], rtol=0.03)
     assert same.all()
-    assert not M.covisibility_mask(depth * 1.05, K, forward_camera(0.0), [depth], K, [forward_camera(0.0)], rtol=0.03).any()
+    assert not C.covisibility_mask(depth * 1.05, K, forward_camera(0.0), [depth], K, [forward_camera(0.0)], rtol=0.03).any()
 
 
 def test_covisibility_follows_moving_objects():
@@ -499,10 +500,10 @@ def test_covisibility_follows_moving_objects():
     ids[:, 10:18], depth[:, 10:18] = 1, 3.0
     train = np.full((H, W), 6.0)
     train[:, 22:30] = 3.0
-    static = M.covisibility_mask(depth, K, cam, [train], K, [cam])
+    static = C.covisibility_mask(depth, K, cam, [train], K, [cam])
     motion = np.tile(np.eye(4), (1, 2, 1, 1))
     motion[0, 1, 0, 3] = dx  # test-time world -> training-time world, per object
-    dynamic = M.covisibility_mask(depth, K, cam, [train], K, [cam], object_ids=ids, object_transforms=motion)
+    dynamic = C.covisibility_mask(depth, K, cam, [train], K, [cam], object_ids=ids, object_transforms=motion)
     box = ids == 1
     hidden_wall = np.zeros((H, W), bool)
     hidden_wall[:, 22:30] = True  # wall behind the box's training-time position was never seen
@@ -511,7 +512,7 @@ def test_covisibility_follows_moving_objects():
     assert np.array_equal(dynamic, ~hidden_wall)
     assert np.array_equal(static, ~hidden_wall & ~box)
     with pytest.raises(ValueError, match="together"):
-        M.covisibility_mask(depth, K, cam, [train], K, [cam], object_ids=ids)
+        C.covisibility_mask(depth, K, cam, [train], K, [cam], object_ids=ids)
 
 
 def test_covisibility_over_many_frames_is_the_union_of_each_frame():
@@ -534,11 +535,11 @@ def test_covisibility_over_many_frames_is_the_union_of_each_frame():
         c = 4 + 7 * i
         train[i, :, c : c + 5] = 1.5
     both = dict(object_ids=ids, object_transforms=motion)
-    full = M.covisibility_mask(depth, K, forward_camera(0.3), train, K, cams, **both)
+    full = C.covisibility_mask(depth, K, forward_camera(0.3), train, K, cams, **both)
     union = np.zeros((H, W), bool)
     singles = []
     for i in range(T):
-        one = M.covisibility_mask(depth, K, forward_camera(0.3), train[i : i + 1], K, cams[i : i + 1],
+        one = C.covisibility_mask(depth, K, forward_camera(0.3), train[i : i + 1], K, cams[i : i + 1],
                                   object_ids=ids, object_transforms=motion[i : i + 1])
         singles.append(one)
         union |= one
@@ -554,7 +555,7 @@ def test_covisibility_transforms_and_configured_depth():
     scene = make_scene(T=4, K=3)
     scales = [1.0, 0.7, 1.4]
     t_test = 2
-    T = M.covisibility_transforms(scene, scales, t_test)
+    T = C.covisibility_transforms(scene, scales, t_test)
     assert T.shape == (4, 3, 4, 4)
     assert np.allclose(T[t_test], np.eye(4))
     centers = scene.training_camera_centers()
@@ -569,4 +570,4 @@ def test_covisibility_transforms_and_configured_depth():
             assert np.allclose(T[t, k] @ world(t_test), world(t))
     ids = np.array([[0, 1], [2, 255]], np.uint8)
     base = np.array([[2.0, 3.0], [4.0, np.inf]])
-    assert np.array_equal(M.configured_depth(base, ids, scales), [[2.0, 3.0 * 0.7], [4.0 * 1.4, np.inf]])
+    assert np.array_equal(C.configured_depth(base, ids, scales), [[2.0, 3.0 * 0.7], [4.0 * 1.4, np.inf]])

@@ -15,6 +15,7 @@ from PIL import Image
 
 from scenecore import dataset as D
 from benchgen.cli import main as benchgen
+from benchgen.score import covisibility as C
 from benchgen.score import metrics as M
 from benchgen.score.bestofn import psnr_matrix, view_psnr
 from benchgen.score.predictions import Candidate, MemorySource, PredictionDir, PredictionError
@@ -189,7 +190,7 @@ def test_workers_give_identical_results(tiny_dataset, tmp_path):
 
 
 def test_max_views_and_covisibility_masks(tiny_dataset):
-    """K evenly spread views in (time, view) order; masks as metrics.covisibility_mask defines them."""
+    """K evenly spread views in (time, view) order; masks as covisibility.covisibility_mask defines them."""
     scene = D.load_scene(tiny_dataset)
     test = sorted(scene.test_frames, key=lambda f: (f.time_index, f.view))
     truth = load_truth(tiny_dataset, max_views=4, workers=2)
@@ -199,10 +200,10 @@ def test_max_views_and_covisibility_masks(tiny_dataset):
     rgb, depth, ids = D.read_frame(tiny_dataset, f.name, g)
     scales = D.load_configuration(tiny_dataset, g).scales
     _, t_depth, t_ids = D.read_training_video(tiny_dataset, scene)
-    expected = M.covisibility_mask(
-        depth, scene.intrinsics.matrix(), f.camera_to_world, [M.configured_depth(d, i, scales) for d, i in zip(t_depth, t_ids)],
+    expected = C.covisibility_mask(
+        depth, scene.intrinsics.matrix(), f.camera_to_world, [C.configured_depth(d, i, scales) for d, i in zip(t_depth, t_ids)],
         scene.intrinsics.matrix(), np.stack([t.camera_to_world for t in sorted(scene.train_frames, key=lambda t: t.time_index)]),
-        object_ids=np.where(ids == D.NO_OBJECT, 0, ids), object_transforms=M.covisibility_transforms(scene, scales, f.time_index))
+        object_ids=np.where(ids == D.NO_OBJECT, 0, ids), object_transforms=C.covisibility_transforms(scene, scales, f.time_index))
     assert np.array_equal(truth.masks(g)[v], expected) and 0.5 < expected.mean() < 1
     assert np.array_equal(truth.masked_rgb[v, g].reshape(rgb.shape), rgb * expected[..., None])
 
