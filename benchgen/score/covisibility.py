@@ -15,6 +15,7 @@ import numpy as np
 from scenecore.cameras import invert_pose, pixel_rays, project
 from scenecore.dataset import NO_OBJECT, Scene
 
+
 def covisibility_mask(
     depth: np.ndarray,
     K: np.ndarray,
@@ -71,25 +72,43 @@ def covisibility_mask(
             break
         p = points[todo]
         if object_ids is not None:
-            todo_ids = ids[todo]
-            for k in np.unique(todo_ids):
-                rows = np.flatnonzero(todo_ids == k)
-                A = object_transforms[i, k]
-                p[rows] = p[rows] @ A[:3, :3].T + A[:3, 3]
-        uv, zi = project(p, train_K[i], train_c2w[i])
-        dmap = np.asarray(train_depths[i], dtype=np.float64)
-        h, w = dmap.shape
-        inside = (zi > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        u = np.clip(np.floor(uv[:, 0]), 0, w - 1).astype(np.int64)
-        v = np.clip(np.floor(uv[:, 1]), 0, h - 1).astype(np.int64)
-        d = dmap[v, u]
-        with np.errstate(invalid="ignore"):  # inf - inf where the training pixel hit nothing
-            ok = inside & np.isfinite(d) & (np.abs(zi - d) <= rtol * d)
+            p = move_with_objects(p, ids[todo], object_transforms[i])
+        _, ok = seen_in_frame(p, train_K[i], train_c2w[i], train_depths[i], rtol)
         seen[todo[ok]] = True
         todo = todo[~ok]
     out = np.zeros(H * W, dtype=bool)
     out[hit] = seen
     return out.reshape(H, W)
+
+
+def move_with_objects(points: np.ndarray, ids: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """World points ``(N, 3)`` of objects ``ids (N,)`` moved by their object's ``transforms[k]``
+    ``(K, 4, 4)`` (one frame of :func:`covisibility_transforms`); a new array."""
+    out = np.array(points, dtype=np.float64, copy=True)
+    for k in np.unique(ids):
+        rows = np.flatnonzero(ids == k)
+        A = transforms[k]
+        out[rows] = out[rows] @ A[:3, :3].T + A[:3, 3]
+    return out
+
+
+def seen_in_frame(
+    points: np.ndarray, K: np.ndarray, c2w: np.ndarray, depth: np.ndarray, rtol: float = 0.03
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where a frame sees world ``points (N, 3)``: their pixel coordinates ``uv (N, 2)`` (centres at
+    .5) and ``seen (N,)``, True where a point projects in front of the camera inside the image and
+    agrees within ``rtol`` (relative) with the frame's planar ``depth (H, W)`` at the nearest pixel
+    (it is not occluded there)."""
+    uv, z = project(points, K, c2w)
+    dmap = np.asarray(depth, dtype=np.float64)
+    h, w = dmap.shape
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    u = np.clip(np.floor(uv[:, 0]), 0, w - 1).astype(np.int64)
+    v = np.clip(np.floor(uv[:, 1]), 0, h - 1).astype(np.int64)
+    d = dmap[v, u]
+    with np.errstate(invalid="ignore"):  # inf - inf where the frame's pixel hit nothing
+        seen = inside & np.isfinite(d) & (np.abs(z - d) <= rtol * d)
+    return uv, seen
 
 
 def configured_depth(base_depth: np.ndarray, ids: np.ndarray, scales: Sequence[float]) -> np.ndarray:
