@@ -36,7 +36,7 @@ from osn.evaluate.report import summary_lines, write_report
 from osn.export.addon_build import build_addon_zip
 from osn.export.from_run import export_run
 from osn.model.run import load_run
-from osn.preprocess.inputs import InputsError, load_inputs, save_inputs
+from osn.preprocess.inputs import InputsError, load_inputs, save_inputs, with_video
 from osn.preprocess.oracle import oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig
 from osn.preprocess.video import preprocess_dataset, training_inputs
@@ -241,8 +241,9 @@ def _sfm_lines(objects: list[dict]) -> list[str]:
 
 
 def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
-    """Oracle inputs (ablation) and per-object SfM (on the SfM video when there is one, averaged
-    down to the benchmark's frames); an SfM failure is a result unless SfM trains."""
+    """Oracle inputs (ablation) and per-object SfM (on the SfM video when there is one: its poses
+    and depths brought down to the benchmark's frames, which the fields then learn); an SfM
+    failure is a result unless SfM trains."""
     scene = D.load_scene(p.dataset)
     factor = sfm_downscale(args, scene.width)
     video = D.read_training_video(p.dataset, scene)  # read once for both
@@ -253,6 +254,8 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
         inputs, report = preprocess_dataset(sfm_source, cfg, progress=lambda m: print(f"  {m} ...", flush=True),
                                             video=video if factor == 1 else None, workers=args.workers)
         inputs = training_inputs(inputs, factor, cfg)
+        if factor > 1:  # SfM saw the video larger; the fields learn the benchmark's own frames, as any method does
+            inputs = with_video(inputs, video[0], video[2], p.dataset / "train")
     except InputsError as e:
         if args.inputs == "colmap":
             raise
@@ -344,7 +347,9 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     stages += [
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p),
               {k: v for k, v in (("sfm_resolution", sfm_res), ("anchor_downscale", args.anchor_downscale),
-                                 ("crop_margin", args.crop_margin)) if v not in (None, "auto")}),
+                                 ("crop_margin", args.crop_margin),
+                                 # since 2026-11-27: the fields learn the benchmark's frames, not SfM's averaged down
+                                 ("training_frames", "benchmark" if sfm_res else None)) if v not in (None, "auto")}),
         Stage("ground-truth", "benchgen: render every configuration's test views and verify them", start_ground_truth,
               bench, background=True),
         Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",

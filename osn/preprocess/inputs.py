@@ -320,6 +320,29 @@ def downscale_inputs(inputs: SceneInputs, factor: int) -> SceneInputs:
     return out
 
 
+def with_video(inputs: SceneInputs, images: np.ndarray, masks: np.ndarray, where: str | Path = "inputs") -> SceneInputs:
+    """The same inputs on another rendering of their video, of the same size: ``images (T, H, W,
+    3)`` uint8 and instance-id ``masks (T, H, W)``. SfM may run on the video rendered larger (small
+    objects register only there), but the fields must learn the video a method is given: the
+    benchmark's own frames, which the evaluation's ground truth was rendered like (the demo's
+    768 px video averaged down to 64 px is 27.5 dB from them: a box filter, not Cycles' pixel
+    filter; docs/preprocess.md). Poses, sparse depths, ranges and boxes are kept; objects
+    preprocessing dropped stay ignored (``IGNORE_ID``). Raises ``InputsError`` naming ``where``
+    when the sizes differ or an object no longer covers a pixel where it has a pose.
+    """
+    T, H, W = inputs.masks.shape
+    if images.shape != (T, H, W, 3) or masks.shape != (T, H, W):
+        raise InputsError(f"{where}: a video of {images.shape[:3]} frames with {masks.shape} masks cannot replace "
+                          f"the inputs' {(T, H, W)}")
+    masks = np.array(masks, dtype=inputs.masks.dtype, copy=True)
+    for oid in inputs.meta.get("dropped_objects", []):
+        masks[masks == oid] = IGNORE_ID
+    out = replace(inputs, images=np.ascontiguousarray(images, dtype=np.uint8), masks=masks,
+                  meta={**inputs.meta, "video": str(where)})
+    check_inputs(out, where)
+    return out
+
+
 def downscale_video(images: np.ndarray, masks: np.ndarray, K: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``images (T, H, W, 3)``, ``masks (T, H, W)`` and pixel intrinsics ``K`` at ``1/factor``
     of the resolution, as :func:`downscale_inputs` takes them (block means, majority ids);

@@ -1,5 +1,6 @@
-"""`osn demo --sfm-resolution`: SfM on the training video rendered larger, its inputs averaged down
-to the benchmark's frames, on the real ``tiny`` preset (stages run as `osn demo` runs them)."""
+"""`osn demo --sfm-resolution`: SfM on the training video rendered larger, its poses and depths
+brought down to the benchmark's frames, which the fields learn, on the real ``tiny`` preset
+(stages run as `osn demo` runs them)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import pytest
 from scenecore import dataset as D
 from scenecore.cli import UserError
 from osn.cli.demo import DemoPaths, add_demo_parser, stage_generate, stage_preprocess, stage_sfm_video
-from osn.preprocess.inputs import load_inputs
+from osn.preprocess.inputs import IGNORE_ID, downscale_video, load_inputs
 
 pytestmark = pytest.mark.slow
 
@@ -44,6 +45,13 @@ def test_sfm_runs_on_the_larger_video_and_trains_on_the_benchmark_frames(tmp_pat
     assert max(len(d) for o in sfm.objects for d in o.sparse_depth) <= 256
     np.testing.assert_allclose(sfm.K, oracle.K, atol=1e-9)
     assert sfm.world_to_anchor is not None  # test views of the 32 px benchmark reach the anchor's frame
+    # The fields learn the benchmark's own frames and masks (what the ground truth was rendered
+    # like), not the larger video averaged down, which differs from them.
+    np.testing.assert_array_equal(sfm.images, oracle.images)
+    dropped = sfm.meta.get("dropped_objects", [])
+    np.testing.assert_array_equal(sfm.masks, np.where(np.isin(oracle.masks, dropped), IGNORE_ID, oracle.masks))
+    averaged = downscale_video(*D.read_training_video(p.sfm_video, big)[::2], sfm.K, 4)[0]
+    assert np.abs(averaged.astype(int) - sfm.images).max() > 0
 
 
 def test_sfm_resolution_auto_follows_the_inputs() -> None:

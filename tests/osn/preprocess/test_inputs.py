@@ -233,3 +233,19 @@ def test_a_frame_left_without_sparse_depths_is_carried_through(oracle, tmp_path)
     assert [len(d) for d in back.object(o.id).sparse_depth] == [len(d) for d in obj.sparse_depth]
     for x in (I.downscale_inputs(back, 2), I.subsample_sparse_depths(back, 5)):
         assert len(x.object(o.id).sparse_depth[1]) == 0 and x.object(o.id).sparse_pix[1].shape == (0, 2)
+
+
+def test_with_video_swaps_the_frames_and_keeps_dropped_objects_ignored(oracle):
+    _, _, inp = oracle
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, inp.images.shape, dtype=np.uint8)
+    dropped = int(inp.objects[-1].id)
+    # Inputs that dropped an object (as preprocessing records it) keep its pixels ignored.
+    inp = dataclasses.replace(inp, meta={**inp.meta, "dropped_objects": [dropped]},
+                              objects=[o for o in inp.objects if o.id != dropped])
+    out = I.with_video(inp, images, inp.masks, "video")
+    np.testing.assert_array_equal(out.images, images)
+    assert not np.any(out.masks == dropped) and np.any(out.masks == I.IGNORE_ID)
+    assert out.objects == inp.objects and out.meta["video"] == "video"
+    with pytest.raises(I.InputsError, match="^frames/: a video of .* cannot replace"):
+        I.with_video(inp, images[:, :-1], inp.masks[:, :-1], "frames/")
