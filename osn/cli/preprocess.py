@@ -11,8 +11,8 @@ from typing import Callable
 import numpy as np
 
 from scenecore.cli import UserError, subcommand
-from scenecore.dataset import atomic_write_json, load_scene
-from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, check_downscale, save_inputs
+from scenecore.dataset import atomic_write_json, load_scene, read_training_video
+from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, check_downscale, save_inputs, with_video
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig, PreprocessReport
 from osn.preprocess.video import (
@@ -51,11 +51,17 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             raise UserError(f"{src} is a benchgen dataset: its instance masks are used, drop --masks")
         scene = load_scene(src)
         _check_downscale(src, scene.width, scene.height, args.downscale)
+        _check_train_video(args.train_video, scene.width // args.downscale, scene.height // args.downscale, len(scene.train_frames))
         inputs, report = preprocess_dataset(src, cfg, progress, work_dir=args.work_dir, workers=args.workers)
     else:
+        if args.train_video:
+            raise UserError(f"{src}: --train-video needs a benchgen dataset as the source (its video rendered larger)")
         inputs, report = _preprocess_frames(src, args, cfg, progress)
     try:
         inputs = training_inputs(inputs, args.downscale, cfg)
+        if args.train_video:
+            video = read_training_video(args.train_video, load_scene(args.train_video))
+            inputs = with_video(inputs, video[0], video[2], Path(args.train_video) / "train")
     except InputsError as e:  # an object left without a pixel at the lower resolution
         raise UserError(f"{src}: --downscale {args.downscale}: {e}") from None
     save_inputs(args.out, inputs)
@@ -65,6 +71,17 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     print(f"per-object inputs written to {args.out} in {time.perf_counter() - t0:.1f} s "
           f"(at most {inputs.meta['sparse_depths_per_frame']} sparse depths per object and frame)")
     return 0
+
+
+def _check_train_video(dataset: str | None, width: int, height: int, frames: int) -> None:
+    """Before SfM: ``--train-video``'s dataset must have the written inputs' size and frame count."""
+    if not dataset:
+        return
+    scene = load_scene(dataset)
+    if (scene.width, scene.height, len(scene.train_frames)) != (width, height, frames):
+        raise UserError(f"{dataset}: --train-video has {len(scene.train_frames)} training frames of "
+                        f"{scene.width}x{scene.height}, the inputs will have {frames} of {width}x{height} "
+                        "(set --downscale to the ratio of the two resolutions)")
 
 
 def _check_downscale(src: Path, width: int, height: int, factor: int) -> None:
@@ -142,6 +159,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=int, default=1,
                    help="write the inputs (frames, masks, intrinsics) at 1/N of the frames' resolution, after SfM ran on "
                    "the full frames: small objects register only in large frames, the fields train faster on small ones")
+    p.add_argument("--train-video", metavar="DATASET",
+                   help="with --downscale on a benchgen dataset rendered larger for SfM: train on DATASET's own training "
+                   "frames and masks (the benchmark's video, the inputs' size) instead of the SfM frames averaged down, "
+                   "which differ from them (a box filter, not the renderer's pixel filter); SfM's poses and depths are kept")
     p.add_argument("--drop-occluding", choices=["objects", "all", "none"], default="objects",
                    help="drop the sparse depths that lie in front of what the object's other frames saw (SfM's "
                    "phantoms, found without ground truth) before normalising: of every object but the anchor, of all, "

@@ -222,6 +222,14 @@ def test_failure_names_object_counts_and_remedy(sfm_scene):
                          PreprocessConfig(on_failure="skip"), workers=2)
 
 
+def test_train_video_of_another_size_is_refused_before_sfm(sfm_scene, tmp_path):
+    """`--train-video` must be the benchmark's video at the inputs' size; a mismatch stops before SfM."""
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(sfm_scene), "--out", str(tmp_path / "o"),
+                        "--downscale", "2", "--train-video", str(sfm_scene)], capture_output=True, text=True)
+    assert r.returncode == 2 and "--train-video has 8 training frames of 128x128" in r.stderr, r.stderr
+    assert "64x64" in r.stderr and "SfM of object" not in r.stdout and not (tmp_path / "o").exists()
+
+
 def test_cli_failure_is_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(tmp_path), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True)
