@@ -193,7 +193,7 @@ def sfm_width(args: argparse.Namespace, dataset_width: int) -> int:
         return -(-SFM_SIZE // dataset_width) * dataset_width if args.inputs == "colmap" else dataset_width
     if r < dataset_width or r % dataset_width:
         raise UserError(f"--sfm-resolution {r} must be a multiple of the benchmark's {dataset_width} px "
-                        "(the SfM inputs are averaged down to its frames)")
+                        "(SfM's poses and depths are brought down to its frames)")
     return r
 
 
@@ -408,7 +408,8 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
                    "(ground-truth poses and depths: an ablation, labelled so in the report)")
     p.add_argument("--sfm-resolution", type=_auto_or_int, default="auto",
                    help="run SfM on the training video rendered again at this square size (a multiple of the "
-                   "benchmark's), its inputs averaged down to the benchmark's frames: SfM registers only the room at "
+                   "benchmark's), its poses and depths brought down to the benchmark's frames, which the fields learn: "
+                   "SfM registers only the room at "
                    f"64 px; auto: {SFM_SIZE} px with --inputs colmap (every gnome-house object in >= 14 of 15 frames), "
                    "the benchmark's own frames with --inputs oracle")
     p.add_argument("--anchor-downscale", default="auto",
