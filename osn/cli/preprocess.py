@@ -59,11 +59,14 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         inputs, report = _preprocess_frames(src, args, cfg, progress)
     try:
         inputs = training_inputs(inputs, args.downscale, cfg)
-        if args.train_video:
-            video = read_training_video(args.train_video, load_scene(args.train_video))
-            inputs = with_video(inputs, video[0], video[2], Path(args.train_video) / "train")
     except InputsError as e:  # an object left without a pixel at the lower resolution
         raise UserError(f"{src}: --downscale {args.downscale}: {e}") from None
+    if args.train_video:
+        video = read_training_video(args.train_video, load_scene(args.train_video))
+        try:
+            inputs = with_video(inputs, video[0], video[2], Path(args.train_video) / "train")
+        except InputsError as e:  # an object without a pixel of its own in the benchmark's masks
+            raise UserError(f"--train-video: {e}") from None
     save_inputs(args.out, inputs)
     atomic_write_json(Path(args.out) / "preprocess_report.json", {"objects": report.objects, "dropped": report.dropped,
                                                                  "seconds": time.perf_counter() - t0})
