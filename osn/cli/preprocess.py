@@ -165,7 +165,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--train-video", metavar="DATASET",
                    help="with --downscale on a benchgen dataset rendered larger for SfM: train on DATASET's own training "
                    "frames and masks (the benchmark's video, the inputs' size) instead of the SfM frames averaged down, "
-                   "which differ from them (a box filter, not the renderer's pixel filter); SfM's poses and depths are kept")
+                   "which differ from them (area averages, where benchgen renders each pixel's centre ray); SfM's poses and "
+                   "depths are kept")
     p.add_argument("--drop-occluding", choices=["objects", "all", "none"], default="objects",
                    help="drop the sparse depths that lie in front of what the object's other frames saw (SfM's "
                    "phantoms, found without ground truth) before normalising: of every object but the anchor, of all, "

@@ -325,8 +325,8 @@ def with_video(inputs: SceneInputs, images: np.ndarray, masks: np.ndarray, where
     3)`` uint8 and instance-id ``masks (T, H, W)``. SfM may run on the video rendered larger (small
     objects register only there), but the fields must learn the video a method is given: the
     benchmark's own frames, which the evaluation's ground truth was rendered like (the demo's
-    768 px video averaged down to 64 px is 27.5 dB from them: a box filter, not Cycles' pixel
-    filter; docs/preprocess.md). Poses, sparse depths, ranges and boxes are kept; objects
+    768 px video averaged down to 64 px is 27.5 dB from them: area averages, where the benchmark
+    renders each pixel's centre ray; docs/preprocess.md). Poses, sparse depths, ranges and boxes are kept; objects
     preprocessing dropped stay ignored (``IGNORE_ID``). Raises ``InputsError`` naming ``where``
     when the sizes differ or an object no longer covers a pixel where it has a pose.
     """
