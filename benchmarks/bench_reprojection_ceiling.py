@@ -51,7 +51,7 @@ def reprojected_view(truth: Truth, g: int, v: int, video: tuple[np.ndarray, np.n
     of its co-visible pixels ``(P,)`` (flat indices), from the nearest training camera that sees each."""
     scene, frame = truth.scene, truth.frames[v]
     K, H, W = scene.intrinsics.matrix(), scene.height, scene.width
-    rgb, depth, ids = truth.views(g)
+    _, depth, ids = truth.views(g)
     pix = np.flatnonzero(truth.masks(g)[v].reshape(-1))
     origins, dirs = pixel_rays(K, frame.camera_to_world, W, H)
     z = depth[v].reshape(-1)[pix]
@@ -78,8 +78,8 @@ def reprojected_view(truth: Truth, g: int, v: int, video: tuple[np.ndarray, np.n
 
 
 def psnr_by_object(sse: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """PSNR per object from the summed channel-mean squared error and the pixel count
-    (:func:`benchgen.score.metrics.squared_error_by_id`'s sums; NaN where no pixel)."""
+    """PSNR per object from :func:`benchgen.score.metrics.squared_error_by_id`'s summed error and
+    pixel count (NaN where no pixel)."""
     sse, pixels = np.atleast_1d(sse), np.atleast_1d(pixels)
     return np.array([M.psnr_from_mse(e / n) if n > 0 else np.nan for e, n in zip(sse, pixels)])
 
@@ -101,20 +101,20 @@ def main(argv: list[str] | None = None) -> int:
     gs = list(range(n))
     scene = truth.scene
     video = D.read_training_video(args.dataset, scene)
-    K = scene.num_objects
+    K, H, W = scene.num_objects, scene.height, scene.width
     sse, count, missing = np.zeros(K + 1), np.zeros(K + 1), 0
     for g in gs:
         rgb, _, ids = truth.views(g)
         poses = configuration_poses(scene, truth.scales[g])
         for v in range(truth.num_views):
             colour, pix = reprojected_view(truth, g, v, video, poses)
-            missing += int(np.isnan(colour).any(1).sum())  # co-visible by the mask's own test: none expected
-            target = rgb[v].reshape(-1, 3)[pix].astype(np.float64) / 255.0
-            err = np.nanmean((colour - target) ** 2, axis=1)
-            obj = ids[v].reshape(-1)[pix].astype(np.int64)
-            obj[obj >= K] = K
-            np.add.at(sse, obj, err)
-            np.add.at(count, obj, 1)
+            # Co-visible by the mask's own test, so none is expected; one would make its object's sum NaN.
+            missing += int(np.isnan(colour).any(1).sum())
+            pred, mask = np.zeros((H * W, 3)), np.zeros(H * W, dtype=bool)
+            pred[pix], mask[pix] = colour, True
+            e, n_px = M.squared_error_by_id(pred.reshape(H, W, 3), rgb[v] / 255.0, ids[v], K, mask.reshape(H, W))
+            sse += e
+            count += n_px
     names = [o.name for o in scene.objects] + ["no object"]
     rows = {"reprojected training video (exact geometry)": psnr_by_object(sse, count)}
     overall = {"reprojected training video (exact geometry)": psnr_by_object(sse.sum(), count.sum())[0]}
