@@ -40,9 +40,10 @@ class SceneTensors:
         ranges: ``(K, 2)`` float64 scale range per object (Eq. 1).
     """
 
-    def __init__(self, inputs: SceneInputs, device: torch.device) -> None:
+    def __init__(self, inputs: SceneInputs, device: torch.device, guide: int = 0) -> None:
         self.inputs = inputs
         self.device = device
+        self.guide = int(guide)  # ObjectRays.guide of every object's rays
         T, H, W = inputs.images.shape[:3]
         self.T, self.H, self.W, self.K = T, H, W, inputs.num_objects
         self.images = torch.from_numpy(inputs.images).to(device).float().reshape(T, H * W, 3) / 255.0
@@ -170,5 +171,5 @@ class SceneTensors:
             s = sbar[k].float()
             P = self.poses[k, frames].clone()
             P[:, :3, :3] = P[:, :3, :3] / s  # cam_to_obj_k @ diag(1/s): scaling about the camera
-            out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s))
+            out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s, self.guide))
         return out

@@ -14,7 +14,10 @@ from hypothesis import strategies as st
 from osn.model.fields import DenseGridField, FieldConfig, make_field, trilinear
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import minority_pairs, order_constraints, trimmed_labels
-from osn.model.volume import ObjectRays, distortion, object_hits, ray_box, render, render_by_hits, shade, transmittance_weights
+from osn.model.volume import (
+    ObjectRays, _box_interval, distortion, guided_positions, object_hits, ray_box, render,
+    render_by_hits, shade, transmittance_weights,
+)
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -116,6 +119,73 @@ def test_opaque_box_depth_colour_and_scaling() -> None:
         assert torch.all((out.depth - 2.0 * scale).abs() < 2.0 / 64 * scale + 1e-4)
 
 
+def _wall(z_cells: slice, raw: float = 300.0, res: int = 64) -> DenseGridField:
+    """An empty box with one wall across it at the grid's z cells ``z_cells``: an opaque surface
+    much thinner than the box, as a room's wall is in its box."""
+    f = _solid(DenseGridField(BOX, res), -30.0, (0.9, 0.5, 0.2))
+    with torch.no_grad():
+        f.grid.view(res, res, res, 4)[z_cells, :, :, 0] = raw
+    return f
+
+
+def test_guided_samples_find_a_thin_surface_that_even_samples_smear() -> None:
+    """8 samples across a box whose wall is 1/32 of it deep: spread evenly they put the wall's
+    depth up to a step off; placed by a guide pass they agree with 4096 even samples."""
+    n = 64
+    f = _wall(slice(40, 42))
+    dirs = _rays(n)
+    even = _obj(f, 3.0, n)
+    guided = ObjectRays(even.field, even.cam_to_obj, even.present, even.t_range, guide=128)
+    ref = render([even], dirs, 4096)
+    assert torch.allclose(ref.acc, torch.ones(n), atol=1e-3)
+    for seed in range(3):
+        coarse = render([even], dirs, 8, torch.Generator().manual_seed(seed))
+        fine = render([guided], dirs, 8, torch.Generator().manual_seed(seed))
+        assert (coarse.depth - ref.depth).abs().max() > 0.05  # the smear the guide removes
+        assert (fine.depth - ref.depth).abs().max() < 0.01
+        assert (fine.rgb - ref.rgb).abs().max() < 0.01 and (fine.acc - ref.acc).abs().max() < 5e-3
+    # Deterministic (midpoint) rendering, as evaluation does, and the object scaled by 1e-2 or 1e4
+    # about the camera (inside _obj's depth range): the guide works in fractions of the interval.
+    assert (render([guided], dirs, 8).depth - ref.depth).abs().max() < 0.01
+    for scale in (1e-2, 1e4):
+        far = _obj(f, 3.0 * scale, n, scale)
+        out = render([ObjectRays(f, far.cam_to_obj, far.present, far.t_range, guide=128)], dirs, 8)
+        assert torch.isfinite(out.depth).all() and (out.depth / scale - ref.depth).abs().max() < 0.01
+    # The wall is one surface: its distortion stays near an opaque sample's, with any sampling.
+    dist = render([guided], dirs, 8, torch.Generator().manual_seed(0), with_distortion=True).distortion
+    assert torch.all(dist < 0.05)
+
+
+def test_guided_positions_are_strata_of_the_whole_interval() -> None:
+    """Each sample lies in its own stratum, the strata tile [0, 1] (lengths sum to 1), and a
+    field with nothing in it, a ray that misses and a non-finite density give the even strata."""
+    n, S = 16, 12
+    dirs = _rays(n)
+    u = torch.rand(n, S, generator=torch.Generator().manual_seed(0))
+    even = (torch.arange(S) + u) / S
+    for f, z in ((_wall(slice(40, 42)), 3.0), (_solid(DenseGridField(BOX, 8), -30.0, (0.5, 0.5, 0.5)), 3.0),
+                 (_wall(slice(40, 42)), -3.0)):  # the last: box behind the camera, missed
+        obj = _obj(f, z, n)
+        o, v, t0, t1, ok = _box_interval(obj, dirs)
+        t1 = torch.where(ok, t1, t0)
+        x, dx = guided_positions(f, o + t0[:, None] * v, (t1 - t0)[:, None] * v, ok, u, 64)
+        assert torch.allclose(dx.sum(1), torch.ones(n), atol=1e-5) and torch.all(dx >= 0)
+        assert torch.all(torch.diff(x, dim=1) >= 0) and torch.all((x >= 0) & (x <= 1))
+        edges = torch.cat([torch.zeros(n, 1), dx.cumsum(1)], 1)
+        assert torch.all((x >= edges[:, :-1] - 1e-5) & (x <= edges[:, 1:] + 1e-5))
+        if f.grid[0, 0] < 0 and z > 0 and not (f.grid[:, 0] > 0).any():  # empty field
+            assert torch.allclose(x, even, atol=1e-4)
+        if z < 0:
+            assert torch.allclose(x, even, atol=1e-6)
+    f = _wall(slice(40, 42))
+    with torch.no_grad():
+        f.grid[5, 0] = float("nan")
+    obj = _obj(f, 3.0, n)
+    o, v, t0, t1, ok = _box_interval(obj, dirs)
+    x, _ = guided_positions(f, o + t0[:, None] * v, (t1 - t0)[:, None] * v, ok, u, 64)
+    assert torch.isfinite(x).all()
+
+
 def test_composite_occlusion_and_segmentation() -> None:
     n = 32
     near = _solid(DenseGridField(BOX, 4), 60.0, (1.0, 0.0, 0.0))
@@ -158,6 +228,13 @@ def test_distortion_is_the_double_sum_and_does_not_depend_on_the_unit() -> None:
     assert abs(float(d3[0]) - 1 / (3 * S)) < 1e-6 and float(d3[1]) > 10 * float(d3[0]) and float(d3[2]) == 0.0
     miss = distortion(torch.zeros(2, S), torch.full((2, S), float("inf")))
     assert torch.equal(miss, torch.zeros(2))
+    # Uneven strata (guided samples): the within-stratum term weighs each sample by its stratum;
+    # even strata give the even formula back.
+    strata = torch.rand(R, S, generator=g) + 0.1
+    strata = strata / strata.sum(1, keepdim=True)
+    assert torch.allclose(distortion(w, t, torch.full((R, S), 1.0 / S)), d, atol=1e-7)
+    uneven = (w[:, :, None] * w[:, None, :] * (s[:, :, None] - s[:, None, :]).abs()).sum((1, 2)) + (w.square() * strata).sum(1) / 3
+    assert torch.allclose(distortion(w, t, strata), uneven, atol=1e-6)
 
 
 def test_absent_objects_and_empty_rays_are_finite() -> None:

@@ -247,6 +247,28 @@ def test_distortion_term_concentrates_each_object_on_its_pixels(tiny_dataset: Pa
     assert sharp < 0.93 * loose, (sharp, loose)  # measured 0.173 vs 0.196 (deterministic: fixed seeds)
 
 
+def test_guided_samples_fit_the_training_frames_closer_with_few_samples(tiny_dataset: Path) -> None:
+    """Stage 1 with 4 samples per object and ray: placed by a 32-sample guide pass
+    (``guide_samples``), the objects render their own pixels closer to the frames than with the
+    4 spread evenly over their boxes; the rays training draws carry the guide."""
+    def fit(guide: int) -> float:
+        tr = Trainer(oracle_inputs(tiny_dataset), _cfg(samples=4, guide_samples=guide), torch.device("cpu"))
+        assert all(r.guide == guide for r in tr.st.object_rays(tr.fields, torch.zeros(1, dtype=torch.long), torch.ones(tr.st.K)))
+        for _ in range(100):
+            tr.step_stage1()
+        one = torch.ones(tr.st.K)
+        HW = tr.st.H * tr.st.W
+        with torch.no_grad():
+            err = [(render(tr.st.object_rays(tr.fields, px // HW, one, [k]), tr.st.dirs[px % HW], tr.cfg.samples).rgb
+                    - tr.st.images[px // HW, px % HW]).square().mean() for k, px in enumerate(tr.st.obj_pixels)]
+        return float(torch.stack(err).mean())
+
+    guided, even = fit(32), fit(0)
+    # Measured 0.0165 vs 0.0173 (deterministic: fixed seeds; equal when the guide is ignored):
+    # the tiny scene's boxes are small, so the gain is 5%, not the demo room's (docs/training.md).
+    assert guided < 0.97 * even, (guided, even)
+
+
 def test_scale_phase_samples_near_earlier_valid_vectors_and_resumes_them(tiny_dataset: Path) -> None:
     cfg = _cfg(label_replay=0.5, scale_samples=200)
     tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
