@@ -96,7 +96,7 @@ class TrainedRun:
     def _object_rays(self, k: int, pose: torch.Tensor, R: int) -> ObjectRays:
         wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
         return ObjectRays(self.fields[k], pose.expand(R, 4, 4), torch.ones(R, dtype=torch.bool, device=self.device), wide,
-                          int(self.config.get("guide_samples", 0)))
+                          int(self.config.get("anchor_guide_samples", 0)) if k == self.anchor_pos else 0)
 
     @torch.no_grad()
     def shade_anchor(self, camera_to_world: np.ndarray | None, time_index: int, chunk: int = 8192,

@@ -17,7 +17,7 @@ from osn.model.fields import FieldConfig
 _POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "scale_width", "scale_layers", "scale_samples",
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
-_NON_NEGATIVE = ("guide_samples", "rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
+_NON_NEGATIVE = ("anchor_guide_samples", "rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
                  "free_band", "free_band_objects", "label_rays", "label_erode", "label_stride")
 _FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
 
@@ -45,7 +45,7 @@ _RULES: dict[str, Rule] = {
 
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
-ADDED_LATER: dict[str, Any] = {"guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9}
+ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9}
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -129,7 +129,7 @@ class TrainConfig:
     rays: int = 1024
     depth_rays: int = 64
     samples: int = 48
-    guide_samples: int = 0  # > 0: volume.guided_positions with this many guide samples (0: even strata)
+    anchor_guide_samples: int = 0  # > 0: the anchor's samples by volume.guided_positions with this many (0: even)
     skip_occluded: float = 1e-3
     w_rgb: float = 1.0
     w_depth: float = 1.0

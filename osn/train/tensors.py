@@ -43,7 +43,7 @@ class SceneTensors:
     def __init__(self, inputs: SceneInputs, device: torch.device, guide: int = 0) -> None:
         self.inputs = inputs
         self.device = device
-        self.guide = int(guide)  # ObjectRays.guide of every object's rays
+        self.guide = int(guide)  # ObjectRays.guide of the anchor's rays (the others' are even)
         T, H, W = inputs.images.shape[:3]
         self.T, self.H, self.W, self.K = T, H, W, inputs.num_objects
         self.images = torch.from_numpy(inputs.images).to(device).float().reshape(T, H * W, 3) / 255.0
@@ -171,5 +171,5 @@ class SceneTensors:
             s = sbar[k].float()
             P = self.poses[k, frames].clone()
             P[:, :3, :3] = P[:, :3, :3] / s  # cam_to_obj_k @ diag(1/s): scaling about the camera
-            out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s, self.guide))
+            out.append(ObjectRays(fields[k], P, self.present[k, frames], self.t_range[k] * s, self.guide if k == self.anchor else 0))
         return out

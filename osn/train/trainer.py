@@ -78,7 +78,7 @@ class Trainer:
 
     def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
         self.cfg, self.device = cfg, device
-        self.st = SceneTensors(inputs, device, cfg.guide_samples)
+        self.st = SceneTensors(inputs, device, cfg.anchor_guide_samples)
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
         self.source = inputs.source
