@@ -214,11 +214,11 @@ def _object_samples(
     vnorm = v.norm(dim=-1, keepdim=True)
     if obj.guide > 0:
         x, dx = guided_positions(obj.field, o + t0[:, None] * v, span * v, ok, u, obj.guide)
-    else:
-        x = (torch.arange(n_samples, device=dirs_cam.device) + u) / n_samples
-        dx = torch.full_like(x, 1.0 / n_samples)
-    t = t0[:, None] + span * x
-    delta_len = span * dx * vnorm
+        t = t0[:, None] + span * x
+        delta_len = span * dx * vnorm
+    else:  # even strata (the arithmetic of every run before the guide: bit for bit)
+        t = t0[:, None] + span * ((torch.arange(n_samples, device=dirs_cam.device) + u) / n_samples)
+        delta_len = (span / n_samples * vnorm).expand(R, n_samples)
     pts = o[:, None, :] + t[..., None] * v[:, None, :]
     view = v / vnorm.clamp_min(1e-12)
     return t, delta_len, pts, view, ok
