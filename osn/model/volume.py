@@ -20,7 +20,6 @@ a finite range, so huge densities, empty rays and zero-length intervals stay fin
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -156,9 +155,9 @@ def guided_positions(field: Field, o: torch.Tensor, v: torch.Tensor, ok: torch.T
     whole interval, so ``x`` in [0, 1]) give each ray a piecewise-constant density of positions:
     :data:`GUIDE_EVEN_SHARE` even, the rest proportional to the object's weights. The strata are
     this density's quantiles ``[i/S, (i+1)/S]`` and ``u (R, S)`` (in [0, 1)) places one sample in
-    each, so ``sum dx = 1`` and an even density gives the even stratified samples back. A room's
-    box sampled evenly puts the demo's 48 samples 20-25 cm apart: a surface then has to spread
-    over a step to be seen at every jitter, and reads nearer (docs/training.md). Rays without a
+    each, so ``sum dx = 1`` and an even density gives the even stratified samples back. The SfM
+    demo's room box sampled evenly puts its 48 samples about 27 cm apart at the median depth: a
+    surface then has to spread over a step to be seen at every jitter (docs/training.md). Rays without a
     finite weight (missed, or a non-finite density, which the render's own samples then meet)
     are sampled evenly.
     """
