@@ -97,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     n = min(args.configs, truth.num_configurations)
     stats = np.zeros((len(BINS), 3))  # pixels, squared error of the composite, of the anchor alone
     rel, test_pts, test_rgb = [], [], []
+    alone_of_view: dict[int, dict] = {}  # the anchor alone is at scale 1 in every configuration
     for g in range(n):
         rgb, depth, ids = truth.views(g)
         for v, f in enumerate(truth.frames):
@@ -105,7 +106,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             gt = rgb[v] / 255.0
             comp = run.render_view(f.camera_to_world, f.time_index, sbar[g])
-            alone = run.render_view(f.camera_to_world, f.time_index, sbar[g], objects=[a])
+            if v not in alone_of_view:
+                alone_of_view[v] = run.render_view(f.camera_to_world, f.time_index, sbar[g], objects=[a])
+            alone = alone_of_view[v]
             dist = distance_transform_edt(ids[v] == anchor_id)
             e_comp, e_alone = ((comp["rgb"] - gt) ** 2).mean(-1), ((alone["rgb"] - gt) ** 2).mean(-1)
             for i, (lo, hi) in enumerate(BINS):
