@@ -93,10 +93,16 @@ class TrainedRun:
         _, d = pixel_rays(inp.K, np.eye(4), inp.width, inp.height)
         return torch.from_numpy(d).float().to(self.device), {k: torch.from_numpy(T[k]).float().to(self.device) for k in keep}
 
+    @property
+    def anchor_guide_samples(self) -> int:
+        """The anchor's guide samples its training used (0: even; a run older than the option: 0)."""
+        from osn.train.config import resolve_anchor_guide_samples  # osn.train imports this module
+        return resolve_anchor_guide_samples(self.config.get("anchor_guide_samples", 0), self.inputs.source)
+
     def _object_rays(self, k: int, pose: torch.Tensor, R: int) -> ObjectRays:
         wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
         return ObjectRays(self.fields[k], pose.expand(R, 4, 4), torch.ones(R, dtype=torch.bool, device=self.device), wide,
-                          int(self.config.get("anchor_guide_samples", 0)) if k == self.anchor_pos else 0)
+                          self.anchor_guide_samples if k == self.anchor_pos else 0)
 
     @torch.no_grad()
     def shade_anchor(self, camera_to_world: np.ndarray | None, time_index: int, chunk: int = 8192,

@@ -23,7 +23,8 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import TrainConfig, resolve_depth_robust, resolve_final_label_trim, resolve_w_edge
+from osn.train.config import (TrainConfig, resolve_anchor_guide_samples, resolve_depth_robust, resolve_final_label_trim,
+                              resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
@@ -78,7 +79,7 @@ class Trainer:
 
     def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
         self.cfg, self.device = cfg, device
-        self.st = SceneTensors(inputs, device, cfg.anchor_guide_samples)
+        self.st = SceneTensors(inputs, device, resolve_anchor_guide_samples(cfg.anchor_guide_samples, inputs.source))
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
         self.source = inputs.source

@@ -271,6 +271,16 @@ def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tm
     del run.config["anchor_guide_samples"]  # as a run trained before the option
     assert [run._object_rays(k, pose, 3).guide for k in range(inputs.num_objects)] == [0] * inputs.num_objects
     assert not np.array_equal(run.render_view(None, f.time_index, np.ones(inputs.num_objects))["rgb"], guided["rgb"])
+    # ``auto`` (the default): guided on SfM inputs, even on the oracle's, in training and in the run's renders.
+    from osn.train.config import ANCHOR_GUIDE_SFM, resolve_anchor_guide_samples
+    assert _cfg().anchor_guide_samples == "auto"
+    assert resolve_anchor_guide_samples("auto", "colmap") == ANCHOR_GUIDE_SFM > 0
+    assert resolve_anchor_guide_samples("auto", "oracle") == 0 and resolve_anchor_guide_samples(8, "oracle") == 8
+    run.config["anchor_guide_samples"] = "auto"
+    assert run.anchor_guide_samples == 0
+    run.inputs.source = "colmap"
+    assert run.anchor_guide_samples == ANCHOR_GUIDE_SFM
+    assert Trainer(dataclasses.replace(inputs, source="colmap"), _cfg(), torch.device("cpu")).st.guide == ANCHOR_GUIDE_SFM
 
 
 def test_scale_phase_samples_near_earlier_valid_vectors_and_resumes_them(tiny_dataset: Path) -> None:
