@@ -12,11 +12,14 @@ scales, as `osn evaluate`'s "true scales" row) it prints:
 * with ``--grid R[,R...]``, a colour grid's own ceiling: an R^3 trilinear RGB grid over the anchor
   pixels' true surface points fitted to the training frames' colours there (exact geometry, no
   density), scored on the same test pixels. What a grid of that resolution can give the anchor
-  at best, whatever the training does.
+  at best, whatever the training does;
+* with ``--planes P[,P...]``, the same for the colour planes of ``field.anchor_planes`` (three
+  P^2 planes, :func:`osn.model.fields.triplane`), and both fits again in the run's anchor frame
+  (``world_to_anchor``: where its fields live; SfM's frame is not aligned with the walls).
 
 It reads the ground truth (a measurement, not a method).
 
-    python benchmarks/bench_anchor_error.py RUN DATASET [--configs 3] [--views 30] [--grid 64,128]
+    python benchmarks/bench_anchor_error.py RUN DATASET [--configs 3] [--views 30] [--grid 64,128] [--planes 128,256,512]
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from benchutil import print_command
 from benchgen.score import metrics as M
 from benchgen.score.truth import load_truth
 from osn.evaluate.units import true_scales
-from osn.model.fields import trilinear
+from osn.model.fields import trilinear, triplane
 from osn.model.run import load_run
 from scenecore import dataset as D
 from scenecore.cameras import pixel_rays
@@ -56,24 +59,34 @@ def surface_points(K: np.ndarray, camera_to_world: np.ndarray, depth: np.ndarray
 
 
 def grid_ceiling(train_pts: np.ndarray, train_rgb: np.ndarray, test_pts: np.ndarray, test_rgb: np.ndarray,
-                 resolution: int, iters: int = 400) -> tuple[float, float]:
-    """PSNR (training, test) of an RGB grid fitted by Adam to ``train_rgb (N, 3)`` at ``train_pts``,
-    over the training points' box (0.5th-99.5th percentiles, 5% margin)."""
+                 resolution: int, iters: int = 400, planes: bool = False) -> tuple[float, float]:
+    """PSNR (training, test) of an RGB grid (``planes``: three colour planes, ``resolution^2``
+    texels each, on 0.5) fitted by Adam to ``train_rgb (N, 3)`` at ``train_pts``, over the
+    training points' box (0.5th-99.5th percentiles, 5% margin)."""
     lo, hi = np.percentile(train_pts, 0.5, 0), np.percentile(train_pts, 99.5, 0)
     centre, half = (lo + hi) / 2, (hi - lo) / 2 * 1.05
     x = torch.from_numpy((train_pts - centre) / half).float()
     xt = torch.from_numpy((test_pts - centre) / half).float()
     y, yt = torch.from_numpy(train_rgb).float(), torch.from_numpy(test_rgb).float()
-    grid = torch.full((resolution**3, 3), 0.5, requires_grad=True)
-    opt = torch.optim.Adam([grid], lr=0.05)
+    if planes:
+        table = torch.zeros(3 * resolution**2, 3, requires_grad=True)
+
+        def colour(p: torch.Tensor) -> torch.Tensor:
+            return 0.5 + triplane(table, resolution, p)
+    else:
+        table = torch.full((resolution**3, 3), 0.5, requires_grad=True)
+
+        def colour(p: torch.Tensor) -> torch.Tensor:
+            return trilinear(table, resolution, p)
+    opt = torch.optim.Adam([table], lr=0.05)
     for _ in range(iters):
         opt.zero_grad()
-        loss = (trilinear(grid, resolution, x) - y).square().mean()
+        loss = (colour(x) - y).square().mean()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        fit = (trilinear(grid, resolution, x) - y).square().mean().item()
-        test = (trilinear(grid, resolution, xt).clamp(0, 1) - yt).square().mean().item()
+        fit = (colour(x) - y).square().mean().item()
+        test = (colour(xt).clamp(0, 1) - yt).square().mean().item()
     return M.psnr_from_mse(fit), M.psnr_from_mse(test)
 
 
@@ -85,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", type=int, default=30, help="evaluated test views per configuration, evenly spread (0 = all)")
     p.add_argument("--training-views", action="store_true", help="also the anchor's depth error in the training frames")
     p.add_argument("--grid", default="", help="comma-separated colour-grid resolutions whose ceiling to fit (e.g. 64,128)")
+    p.add_argument("--planes", default="", help="comma-separated colour-plane sizes whose ceiling to fit (e.g. 128,256,512); "
+                   "the grids and planes are then also fitted in the run's anchor frame")
     args = p.parse_args(argv)
     print_command()
     truth = load_truth(args.dataset, args.views, workers=2)
@@ -131,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| ({lo:g}, {hi:g}] | {px / total[0]:.1%} | {M.psnr_from_mse(sc / px):.2f} | "
                   f"{M.psnr_from_mse(sa / px):.2f} | {share:.1%} |")
     print("anchor depth in the test views (rendered / true - 1): " + depth_summary(np.concatenate(rel)))
-    if args.training_views or args.grid:
+    if args.training_views or args.grid or args.planes:
         t_rgb, t_depth, t_ids = D.read_training_video(args.dataset, scene)
         train = sorted(scene.train_frames, key=lambda fr: fr.time_index)
     if args.training_views:
@@ -141,17 +156,24 @@ def main(argv: list[str] | None = None) -> int:
             r = run.render_view(None, f.time_index, np.ones(inp.num_objects), objects=[a])
             rel_t.append(r["depth"][mask] * unit / t_depth[i][mask] - 1.0)
         print("anchor depth in the training frames: " + depth_summary(np.concatenate(rel_t)))
-    if args.grid:
+    if args.grid or args.planes:
         pts, cols = [], []
         for i, f in enumerate(train):
             mask = (t_ids[i] == anchor_id) & np.isfinite(t_depth[i])
             pts.append(surface_points(K, f.camera_to_world, t_depth[i], mask))
             cols.append(t_rgb[i][mask] / 255.0)
-        tp, tc = np.concatenate(test_pts), np.concatenate(test_rgb)
-        for r in (int(x) for x in args.grid.split(",")):
-            fit, test = grid_ceiling(np.concatenate(pts), np.concatenate(cols), tp, tc, r)
-            print(f"a {r}^3 colour grid at the true surface points: training frames {fit:.2f} dB, "
-                  f"test pixels (first ground truth) {test:.2f} dB")
+        tp, tc, P, C = np.concatenate(test_pts), np.concatenate(test_rgb), np.concatenate(pts), np.concatenate(cols)
+        W = inp.world_to_anchor
+        frames = [("world", lambda x: x)]
+        if args.planes and W is not None:
+            frames.append(("the run's anchor frame", lambda x: x @ W[:3, :3].T + W[:3, 3]))
+        fits = [(int(r), False) for r in args.grid.split(",") if r] + [(int(r), True) for r in args.planes.split(",") if r]
+        for frame, to in frames:
+            for r, planes in fits:
+                fit, test = grid_ceiling(to(P), C, to(tp), tc, r, planes=planes)
+                what = f"three {r}^2 colour planes" if planes else f"a {r}^3 colour grid"
+                print(f"{what} at the true surface points ({frame}): training frames {fit:.2f} dB, "
+                      f"test pixels (first ground truth) {test:.2f} dB")
     return 0
 
 

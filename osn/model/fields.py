@@ -17,6 +17,7 @@ re-create the right parameter shapes before loading a state dict).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -128,20 +129,57 @@ def trilinear_frozen(grid_cf: torch.Tensor, xn: torch.Tensor) -> torch.Tensor:
     return out.view(grid_cf.shape[1], n).T
 
 
+#: The axes of the three colour planes of :func:`triplane` (xy, xz, yz).
+PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+
+
+def triplane(planes: torch.Tensor, size: int, xn: torch.Tensor) -> torch.Tensor:
+    """Sum of bilinear lookups in three axis-aligned planes ``planes (3 * size^2, C)`` (plane i of
+    :data:`PLANE_AXES` in rows ``i * size^2 ...``, its first axis fastest, ``align_corners=True``) at
+    points ``xn (N, 3)`` in [-1, 1]; returns ``(N, C)``.
+
+    A surface is a 2D set, so three ``size^2`` planes hold texture a ``size^3`` grid would need
+    for the same detail (each surface point has its own coordinates in most of the planes).
+    One gather of the 12 corners, as :func:`trilinear` (deterministic backward on CPU).
+    """
+    n = size
+    p = (xn[:, [a for ab in PLANE_AXES for a in ab]].view(-1, 3, 2).clamp(-1.0, 1.0) + 1.0) * (0.5 * (n - 1))
+    i0 = p.detach().floor().clamp(0, n - 2)
+    f = p - i0  # (N, 3, 2)
+    i0 = i0.long()
+    base = torch.arange(3, device=xn.device) * n * n + i0[..., 1] * n + i0[..., 0]  # (N, 3)
+    offs = torch.tensor([0, 1, n, n + 1], device=xn.device)
+    fu, fv = f[..., 0], f[..., 1]
+    w = torch.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], -1).reshape(-1, 12, 1)
+    vals = torch.index_select(planes, 0, (base[..., None] + offs).reshape(-1)).view(-1, 12, planes.shape[1])
+    return (vals * w).sum(1)
+
+
 class DenseGridField(Field):
     """Dense voxel grid: channel 0 raw density, channels 1-3 raw RGB (sigmoid), no MLP.
 
     Stored channels-last as ``(R^3, 4)`` so one lookup returns density and colour together.
     Without autograd (evaluation, label pools, export) lookups go through
     :func:`trilinear_frozen` on a channels-first copy, made again whenever the grid changes.
+
+    With ``planes > 0`` the raw RGB also adds :func:`triplane` colour planes of ``planes^2`` texels
+    (zero at the start, so the field starts as the grid alone; their size does not change with
+    :meth:`set_resolution`): texture finer than the grid's voxels on surfaces, for the anchor,
+    whose box spans the whole scene (``FieldConfig.anchor_planes``).
     """
 
     view_dependent = False
 
-    def __init__(self, bbox: torch.Tensor, resolution: int) -> None:
+    def __init__(self, bbox: torch.Tensor, resolution: int, planes: int = 0) -> None:
         super().__init__(bbox, resolution)
         self.grid = nn.Parameter(torch.zeros(self.resolution**3, 4))
+        self.plane_size = int(planes)
+        self.planes = nn.Parameter(torch.zeros(3 * self.plane_size**2, 3)) if self.plane_size else None
         self._frozen: tuple[tuple, torch.Tensor] | None = None
+
+    def _raw_rgb(self, raw: torch.Tensor, xn: torch.Tensor) -> torch.Tensor:
+        """The grid's raw RGB ``raw (N, 3)`` plus the colour planes' at ``xn (N, 3)``."""
+        return raw if self.planes is None else raw + triplane(self.planes, self.plane_size, xn)
 
     def _lookup(self, channels: slice, xn: torch.Tensor) -> torch.Tensor:
         """Raw grid values ``(N, C)`` of ``channels`` at box coordinates ``xn (N, 3)``."""
@@ -157,7 +195,7 @@ class DenseGridField(Field):
         return self._lookup(slice(0, 1), xn)[:, 0]
 
     def _color(self, xn: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self._lookup(slice(1, 4), xn))
+        return torch.sigmoid(self._raw_rgb(self._lookup(slice(1, 4), xn), xn))
 
     def density_and_color(self, x: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density ``(N,)`` and RGB ``(N, 3)`` at points ``x (N, 3)`` seen along ``dirs (N, 3)``, with a
@@ -166,7 +204,7 @@ class DenseGridField(Field):
         v = self._lookup(slice(0, 4), xn)
         sigma = F.softplus(v[:, 0] + DENSITY_SHIFT)
         sigma = torch.where(self.inside(xn), sigma, torch.zeros_like(sigma))
-        return sigma, torch.sigmoid(v[:, 1:])
+        return sigma, torch.sigmoid(self._raw_rgb(v[:, 1:], xn))
 
     @torch.no_grad()
     def set_resolution(self, resolution: int) -> None:
@@ -179,7 +217,7 @@ class DenseGridField(Field):
         self.resolution = r
 
     def param_groups(self, lr_grid: float, lr_net: float) -> list[dict]:
-        return [{"params": [self.grid], "lr": lr_grid}]
+        return [{"params": [self.grid] + ([self.planes] if self.planes is not None else []), "lr": lr_grid}]
 
     def density_tv(self) -> torch.Tensor:
         r = self.resolution
@@ -288,6 +326,11 @@ class TensoRFVM(Field):
         return torch.diff(p, dim=2).square().mean() + torch.diff(p, dim=3).square().mean() + torch.diff(ln, dim=2).square().mean()
 
 
+#: ``field`` options added after runs were first written, with the value that trained those runs
+#: (``TrainConfig.from_yaml(..., run_config=True)`` and ``load_run`` fill them in).
+FIELD_ADDED_LATER: dict[str, Any] = {"object_resolution": 0, "anchor_planes": 0}
+
+
 _FIELD_RULES: dict[str, Rule] = {
     "kind": choice("dense", "tensorf"),
     # Trilinear interpolation needs 2 voxels per axis.
@@ -298,6 +341,9 @@ _FIELD_RULES: dict[str, Rule] = {
     **{name: integer(1) for name in ("density_components", "appearance_components", "app_dim", "hidden")},
     **{name: number(0.0, lo_open=True, what="a positive learning rate") for name in ("lr_grid", "lr_net")},
     "tv_density": number(0.0),
+    "object_resolution": Rule(lambda v: v == "auto" or integer(0).ok(v), "auto or an integer >= 0"),
+    # Bilinear interpolation needs 2 texels per side; 0 = no planes.
+    "anchor_planes": Rule(lambda v: integer(0).ok(v) and v != 1, "0 or an integer >= 2"),
 }
 
 
@@ -313,6 +359,14 @@ class FieldConfig:
         density_components, appearance_components, app_dim, hidden: TensoRF sizes (paper: 16, 48).
         lr_grid, lr_net: Adam learning rates of grids and networks.
         tv_density: weight of the density total-variation prior (:meth:`Field.density_tv`).
+        object_resolution: final voxels per axis of every object's field but the anchor's (whose
+            is ``resolution``); each grows on the anchor's schedule scaled to it. ``auto``: as many
+            as the object's box spans pixels in its training frames
+            (:func:`osn.train.config.footprint_resolution`),
+            so a voxel is about one pixel; finer voxels fit the training views and smear novel
+            ones (docs/training.md, "The objects' voxels at the pixel's size"). 0: ``resolution``.
+        anchor_planes: texels per side of the anchor's colour planes (:func:`triplane`; dense
+            fields only, TensoRF's own planes hold its colour); 0: the grid's colour alone.
     """
 
     kind: str = "dense"
@@ -326,24 +380,33 @@ class FieldConfig:
     lr_grid: float = 0.2
     lr_net: float = 1e-3
     tv_density: float = 0.0
+    object_resolution: int | str = "auto"
+    anchor_planes: int = 256
 
     def __post_init__(self) -> None:
         validate(self, "field", _FIELD_RULES)
 
-    def resolutions(self) -> list[int]:
-        """The resolution after each upsampling step, from ``initial_resolution`` to ``resolution``."""
+    def resolutions(self, final: int | None = None) -> list[int]:
+        """The resolution after each upsampling step, from ``initial_resolution`` to ``resolution``;
+        with ``final``, the same steps scaled to end at ``final`` (at least 2 voxels each)."""
         if self.upsample_steps <= 0 or self.initial_resolution >= self.resolution:
-            return [self.resolution]
-        n = self.upsample_steps
-        lo, hi = float(self.initial_resolution), float(self.resolution)
-        return [int(round(lo * (hi / lo) ** (i / n))) for i in range(n + 1)]
+            steps = [self.resolution]
+        else:
+            n = self.upsample_steps
+            lo, hi = float(self.initial_resolution), float(self.resolution)
+            steps = [int(round(lo * (hi / lo) ** (i / n))) for i in range(n + 1)]
+        if final is None or final == self.resolution:
+            return steps
+        return [max(2, int(round(r * final / self.resolution))) for r in steps]
 
 
-def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: int | None = None) -> Field:
-    """Build the configured field for one object's box ``bbox (2, 3)`` (at ``resolution`` or the initial one)."""
+def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: int | None = None,
+               anchor: bool = False) -> Field:
+    """Build the configured field for one object's box ``bbox (2, 3)`` (at ``resolution`` or the
+    initial one); the ``anchor``'s dense field carries ``cfg.anchor_planes`` colour planes."""
     r = resolution if resolution is not None else cfg.resolutions()[0]
     if cfg.kind == "dense":
-        return DenseGridField(bbox, r)
+        return DenseGridField(bbox, r, cfg.anchor_planes if anchor else 0)
     if cfg.kind == "tensorf":
         return TensoRFVM(bbox, r, cfg.density_components, cfg.appearance_components, cfg.app_dim, cfg.hidden, seed=seed)
     raise ValueError(f"unknown field kind {cfg.kind!r} (expected 'dense' or 'tensorf')")

@@ -17,7 +17,7 @@ import torch
 
 from scenecore import dataset as D
 from scenecore.cameras import pixel_rays
-from osn.model.fields import Field, FieldConfig, make_field
+from osn.model.fields import FIELD_ADDED_LATER, Field, FieldConfig, make_field
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
@@ -204,10 +204,10 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     dev = torch.device(device)
     cfg = ckpt["config"]
     try:  # a checkpoint of another field kind, size or layout
-        fcfg = FieldConfig(**cfg["field"])
+        fcfg = FieldConfig(**{**FIELD_ADDED_LATER, **cfg["field"]})  # an older run: the options it trained without
         fields = []
-        for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
-            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r)
+        for k, (o, r, sd) in enumerate(zip(inputs.objects, ckpt["resolutions"], ckpt["fields"])):
+            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r, anchor=k == inputs.anchor_pos)
             f.load_state_dict(sd)
             fields.append(f.to(dev).eval())
         net = None

@@ -1,4 +1,4 @@
-"""The training configuration (``config.yaml`` of a run) and the label pool's automatic stride."""
+"""The training configuration (``config.yaml`` of a run), the objects' grid resolutions and the label pool's automatic stride."""
 
 from __future__ import annotations
 
@@ -7,11 +7,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
+from scenecore.cameras import project
 from scenecore.config import Rule, choice, from_dict, integer, number, validate
 
-from osn.model.fields import FieldConfig
+from osn.model.fields import FIELD_ADDED_LATER, FieldConfig
+from osn.preprocess.inputs import SceneInputs
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
 _POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "scale_width", "scale_layers", "scale_samples",
@@ -47,6 +50,7 @@ _RULES: dict[str, Rule] = {
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
 ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9}
+
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -211,6 +215,8 @@ class TrainConfig:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
                 d = {**ADDED_LATER, **d}
+                if isinstance(d.get("field"), dict):
+                    d["field"] = {**FIELD_ADDED_LATER, **d["field"]}
             return cls.from_dict(d)
         except (ValueError, TypeError, yaml.YAMLError) as e:
             raise ValueError(f"{path}: {e}") from None
@@ -220,6 +226,46 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         d["background"] = list(self.background)
         return d
+
+
+#: ``field.object_resolution: auto`` keeps at least this many voxels per axis (an object a few
+#: pixels wide still gets a grid that trilinear interpolation can shape).
+MIN_OBJECT_RESOLUTION = 16
+
+
+def footprint_resolution(bbox: np.ndarray, cam_to_obj: np.ndarray, K: np.ndarray, cap: int) -> int:
+    """Voxels per axis at which one voxel is about one pixel of the training frames: the median,
+    over the frames that see the whole box in front of the camera, of the box's projected extent
+    (the longer side of its eight corners' image bounding box, in pixels), rounded and clamped to
+    ``[MIN_OBJECT_RESOLUTION, cap]``; ``cap`` when no frame sees the box whole (a camera inside it).
+
+    ``bbox (2, 3)`` min / max corner in object units, ``cam_to_obj (F, 4, 4)`` OpenCV camera-to-object
+    poses, ``K (3, 3)`` intrinsics.
+    """
+    lo, hi = np.asarray(bbox, dtype=np.float64)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    extents = []
+    for pose in np.asarray(cam_to_obj, dtype=np.float64):
+        uv, depth = project(corners, K, pose)
+        if np.all(depth > 0) and np.all(np.isfinite(uv)):
+            extents.append(float(np.ptp(uv, axis=0).max()))
+    if not extents:
+        return int(cap)
+    return int(np.clip(round(float(np.median(extents))), min(MIN_OBJECT_RESOLUTION, cap), cap))
+
+
+def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs) -> list[list[int]]:
+    """Per object position its fields' resolution schedule (:meth:`FieldConfig.resolutions`): the
+    anchor's ends at ``field.resolution``, every other object's at ``field.object_resolution``
+    (``auto``: :func:`footprint_resolution`; 0: ``resolution``; never above ``resolution``)."""
+    out = []
+    for k, o in enumerate(inputs.objects):
+        final = fcfg.resolution
+        if k != inputs.anchor_pos and fcfg.object_resolution != 0:
+            final = (footprint_resolution(o.bbox, o.cam_to_obj, inputs.K, fcfg.resolution)
+                     if fcfg.object_resolution == "auto" else min(int(fcfg.object_resolution), fcfg.resolution))
+        out.append(fcfg.resolutions(final))
+    return out
 
 
 #: ``label_stride: 0`` keeps about this many pool pixels per frame side: the per-object depth

@@ -23,8 +23,8 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import (TrainConfig, resolve_anchor_guide_samples, resolve_depth_robust, resolve_final_label_trim,
-                              resolve_w_edge)
+from osn.train.config import (TrainConfig, object_resolutions, resolve_anchor_guide_samples, resolve_depth_robust,
+                              resolve_final_label_trim, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
@@ -89,14 +89,17 @@ class Trainer:
                         "no ray is drawn from them", self.st.unposed_pixels)
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-        self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k).to(device) for k, o in enumerate(inputs.objects)]
+        self.resolutions = object_resolutions(cfg.field, inputs)  # per object position its grid's schedule
+        self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k, resolution=self.resolutions[k][0],
+                                  anchor=k == inputs.anchor_pos).to(device) for k, o in enumerate(inputs.objects)]
         self.net = ScaleNet(K - 1, cfg.scale_width, cfg.scale_layers, seed=cfg.seed).to(device) if K > 1 else None
         self.net_opt = torch.optim.Adam(self.net.parameters(), lr=cfg.scale_lr) if self.net is not None else None
         self.schedule = build_schedule(cfg, K)
         self.total = self.schedule[-1].end if self.schedule else 0
         self.field_total = sum(p.end - p.start for p in self.schedule if p.name != "scale")
-        res = cfg.field.resolutions()
-        self.upsample_at = {int(round(self.field_total * 0.4 * (i + 1) / (len(res) - 1))): r for i, r in enumerate(res[1:])} if len(res) > 1 else {}
+        steps = len(self.resolutions[0])  # the same number of steps for every object
+        # field iteration -> the upsampling step (index into each object's schedule) it starts
+        self.upsample_at = {int(round(self.field_total * 0.4 * i / (steps - 1))): i for i in range(1, steps)}
         self.field_iter = 0
         self.iteration = 0
         self.elapsed = 0.0
@@ -406,8 +409,8 @@ class Trainer:
             out = self.step_scale(ph)
         else:
             if self.field_iter in self.upsample_at:
-                for f in self.fields:
-                    f.set_resolution(self.upsample_at[self.field_iter])
+                for f, res in zip(self.fields, self.resolutions):
+                    f.set_resolution(res[self.upsample_at[self.field_iter]])
                 self._make_field_opt()  # parameter shapes changed (TensoRF does the same)
             out = self.step_stage1() if ph.name == "stage1" else self.step_fields()
             self.field_iter += 1

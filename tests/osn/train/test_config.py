@@ -5,15 +5,18 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from osn.model.fields import FieldConfig
 from osn.train import TrainConfig
 from osn.train.config import (
+    MIN_OBJECT_RESOLUTION,
     DEPTH_ROBUST_SFM,
     FINAL_LABEL_TRIM_ORACLE,
     FINAL_LABEL_TRIM_SFM,
+    footprint_resolution,
     label_stride,
     resolve_depth_robust,
     resolve_final_label_trim,
@@ -65,12 +68,58 @@ def test_a_run_config_written_before_a_new_term_keeps_it_off(tmp_path: Path) -> 
     assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), w_distortion=0.0)
 
 
+def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_resolution(tmp_path: Path) -> None:
+    d = TrainConfig().to_dict()
+    del d["field"]["object_resolution"]
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(d))
+    assert TrainConfig.from_yaml(path, run_config=True).field.object_resolution == 0
+    assert TrainConfig.from_yaml(path).field.object_resolution == "auto" == FieldConfig().object_resolution
+
+
 @pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0},
-                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"app_dim": True}])
+                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"app_dim": True},
+                                 {"object_resolution": -1}, {"object_resolution": "half"}, {"object_resolution": 2.5}])
 def test_field_config_rejects_impossible_values(bad: dict) -> None:
     (key, _), = bad.items()
     with pytest.raises(ValueError, match=f"field config: {key} must"):
         FieldConfig(**bad)
+
+
+def _looking_at_box(distance: float, n: int = 3) -> np.ndarray:
+    """``(n, 4, 4)`` camera-to-object poses: the camera ``distance`` in front of the origin on -z
+    (OpenCV: looking along +z), slightly turned frame to frame."""
+    out = []
+    for a in np.linspace(-0.02, 0.02, n):
+        c, s = np.cos(a), np.sin(a)
+        R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = R @ np.array([0.0, 0.0, -distance])
+        out.append(T)
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("unit", [1.0, 1e-3, 1e4])
+def test_footprint_resolution_is_the_boxes_extent_in_pixels(unit: float) -> None:
+    """A unit box 10 units away under a focal length f spans about f / 9.5 pixels (its near face),
+    whatever the unit; clamped to [MIN_OBJECT_RESOLUTION, cap]; a camera inside the box gives cap."""
+    box = np.array([[-0.5] * 3, [0.5] * 3]) * unit
+
+    def K(f: float) -> np.ndarray:
+        return np.array([[f, 0.0, 32.0], [0.0, f, 32.0], [0.0, 0.0, 1.0]])
+
+    poses = _looking_at_box(10.0 * unit)
+    r = footprint_resolution(box, poses, K(380.0), 64)
+    assert abs(r - 40) <= 1, r  # 380 / 9.5 = 40 pixels facing the camera; the turn adds a little
+    assert footprint_resolution(box, poses, K(9500.0), 64) == 64  # capped
+    assert footprint_resolution(box, poses, K(19.0), 64) == MIN_OBJECT_RESOLUTION  # 2 px: at least 16
+    assert footprint_resolution(box, poses, K(19.0), 8) == 8  # never above the cap
+    inside = _looking_at_box(0.0)
+    assert footprint_resolution(box, inside, K(380.0), 64) == 64
+    broken = poses.copy()
+    broken[0, 0, 3] = np.nan  # a frame without a usable pose is skipped, not a NaN resolution
+    assert abs(footprint_resolution(box, broken, K(380.0), 64) - 40) <= 1
 
 
 def test_auto_label_stride_keeps_the_pool_size_of_a_128_pixel_frame() -> None:

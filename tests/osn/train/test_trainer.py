@@ -452,3 +452,40 @@ def test_final_phase_trims_by_the_inputs_source(tiny_dataset: Path) -> None:
         assert scale[-1].round == tr.cfg.rounds + 1 and all(p.round <= tr.cfg.rounds for p in scale[:-1])
         trims[source] = [tr.label_trim_at(p) for p in scale]
     assert trims["oracle"] == [0.01, 0.01, 0.002] and trims["colmap"] == [0.01, 0.01, 0.01]
+
+
+def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tiny_dataset: Path, tmp_path: Path) -> None:
+    """``field.object_resolution: auto`` gives every object but the anchor a grid of about a voxel
+    per training pixel, grown on the anchor's schedule; the trained run loads each at its own size.
+    0 keeps every object at ``resolution`` (as before the option)."""
+    from osn.model.fields import FieldConfig
+    from osn.model.run import load_run
+    from osn.train.config import object_resolutions
+    from osn.train.loop import train
+
+    inputs = oracle_inputs(tiny_dataset)
+    fcfg = FieldConfig(kind="dense", resolution=24, initial_resolution=16, upsample_steps=1, object_resolution="auto")
+    sched = object_resolutions(fcfg, inputs)
+    a = inputs.anchor_pos
+    assert sched[a] == [16, 24]
+    assert all(s[-1] < 24 and s[0] < s[-1] for k, s in enumerate(sched) if k != a), sched  # objects ~10 px wide at 32 px
+    train(tmp_path / "r", _cfg(field=fcfg), inputs=inputs, progress=False)
+    run = load_run(tmp_path / "r")
+    assert [f.resolution for f in run.fields] == [s[-1] for s in sched]
+    # Only the anchor carries colour planes (``anchor_planes``, 256 by default), and they trained.
+    assert [f.planes is not None for f in run.fields] == [k == a for k in range(inputs.num_objects)]
+    assert run.fields[a].planes.shape == (3 * 256**2, 3) and run.fields[a].planes.abs().max() > 0
+    # A run whose checkpoint predates the two options loads as it trained: objects at
+    # ``resolution``, no planes (``FIELD_ADDED_LATER``).
+    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    for key in ("object_resolution", "anchor_planes"):
+        del ckpt["config"]["field"][key]
+    ckpt["fields"][a] = {k: v for k, v in ckpt["fields"][a].items() if k != "planes"}
+    torch.save(ckpt, tmp_path / "r" / "checkpoint.pt")
+    old = load_run(tmp_path / "r")
+    t0 = int(inputs.objects[a].frames[0])
+    assert old.fields[a].planes is None and np.isfinite(old.render_view(None, t0, np.ones(inputs.num_objects))["rgb"]).all()
+    same = dataclasses.replace(fcfg, object_resolution=0)
+    assert object_resolutions(same, inputs) == [[16, 24]] * inputs.num_objects
+    assert object_resolutions(dataclasses.replace(fcfg, object_resolution=20), inputs) == \
+        [[16, 24] if k == a else [13, 20] for k in range(inputs.num_objects)]
