@@ -343,7 +343,7 @@ _FIELD_RULES: dict[str, Rule] = {
     "tv_density": number(0.0),
     "object_resolution": Rule(lambda v: v == "auto" or integer(0).ok(v), "auto or an integer >= 0"),
     # Bilinear interpolation needs 2 texels per side; 0 = no planes.
-    "anchor_planes": Rule(lambda v: integer(0).ok(v) and v != 1, "0 or an integer >= 2"),
+    "anchor_planes": Rule(lambda v: v == "auto" or (integer(0).ok(v) and v != 1), "auto, 0 or an integer >= 2"),
 }
 
 
@@ -360,13 +360,15 @@ class FieldConfig:
         lr_grid, lr_net: Adam learning rates of grids and networks.
         tv_density: weight of the density total-variation prior (:meth:`Field.density_tv`).
         object_resolution: final voxels per axis of every object's field but the anchor's (whose
-            is ``resolution``); each grows on the anchor's schedule scaled to it. ``auto``: as many
-            as the object's box spans pixels in its training frames
-            (:func:`osn.train.config.footprint_resolution`),
-            so a voxel is about one pixel; finer voxels fit the training views and smear novel
-            ones (docs/training.md, "The objects' voxels at the pixel's size"). 0: ``resolution``.
+            is ``resolution``); each grows on the anchor's schedule scaled to it. ``auto``: on SfM
+            inputs as many as the object's box spans pixels in its training frames
+            (:func:`osn.train.config.footprint_resolution`), so a voxel is about one pixel (finer
+            voxels fit the training views and smear novel ones), ``resolution`` on the oracle's
+            (:func:`osn.train.config.object_resolutions`; docs/training.md). 0: ``resolution``.
         anchor_planes: texels per side of the anchor's colour planes (:func:`triplane`; dense
-            fields only, TensoRF's own planes hold its colour); 0: the grid's colour alone.
+            fields only, TensoRF's own planes hold its colour); ``auto``: on SfM inputs a texel
+            about one pixel at the anchor's median sparse depth, none on the oracle's
+            (:func:`osn.train.config.anchor_plane_size`); 0: the grid's colour alone.
     """
 
     kind: str = "dense"
@@ -381,7 +383,7 @@ class FieldConfig:
     lr_net: float = 1e-3
     tv_density: float = 0.0
     object_resolution: int | str = "auto"
-    anchor_planes: int = 256
+    anchor_planes: int | str = "auto"
 
     def __post_init__(self) -> None:
         validate(self, "field", _FIELD_RULES)
@@ -401,12 +403,12 @@ class FieldConfig:
 
 
 def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: int | None = None,
-               anchor: bool = False) -> Field:
+               planes: int = 0) -> Field:
     """Build the configured field for one object's box ``bbox (2, 3)`` (at ``resolution`` or the
-    initial one); the ``anchor``'s dense field carries ``cfg.anchor_planes`` colour planes."""
+    initial one); a dense field with ``planes`` texels per side of colour planes (the anchor's)."""
     r = resolution if resolution is not None else cfg.resolutions()[0]
     if cfg.kind == "dense":
-        return DenseGridField(bbox, r, cfg.anchor_planes if anchor else 0)
+        return DenseGridField(bbox, r, planes)
     if cfg.kind == "tensorf":
         return TensoRFVM(bbox, r, cfg.density_components, cfg.appearance_components, cfg.app_dim, cfg.hidden, seed=seed)
     raise ValueError(f"unknown field kind {cfg.kind!r} (expected 'dense' or 'tensorf')")

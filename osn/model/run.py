@@ -9,6 +9,7 @@ placed through :mod:`osn.placement`. All scale vectors are indexed by object *po
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -204,10 +205,11 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     dev = torch.device(device)
     cfg = ckpt["config"]
     try:  # a checkpoint of another field kind, size or layout
-        fcfg = FieldConfig(**{**FIELD_ADDED_LATER, **cfg["field"]})  # an older run: the options it trained without
+        fcfg = FieldConfig(**{**FIELD_ADDED_LATER, **cfg["field"]})  # an older run: options it trained without
         fields = []
-        for k, (o, r, sd) in enumerate(zip(inputs.objects, ckpt["resolutions"], ckpt["fields"])):
-            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r, anchor=k == inputs.anchor_pos)
+        for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
+            planes = int(round(math.sqrt(sd["planes"].shape[0] / 3))) if "planes" in sd else 0  # the anchor's
+            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r, planes=planes)
             f.load_state_dict(sd)
             fields.append(f.to(dev).eval())
         net = None

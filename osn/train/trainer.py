@@ -23,7 +23,7 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import (TrainConfig, object_resolutions, resolve_anchor_guide_samples, resolve_depth_robust,
+from osn.train.config import (TrainConfig, anchor_plane_size, object_resolutions, resolve_anchor_guide_samples, resolve_depth_robust,
                               resolve_final_label_trim, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
@@ -90,8 +90,9 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.resolutions = object_resolutions(cfg.field, inputs)  # per object position its grid's schedule
+        planes = anchor_plane_size(cfg.field, inputs)
         self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k, resolution=self.resolutions[k][0],
-                                  anchor=k == inputs.anchor_pos).to(device) for k, o in enumerate(inputs.objects)]
+                                  planes=planes if k == inputs.anchor_pos else 0).to(device) for k, o in enumerate(inputs.objects)]
         self.net = ScaleNet(K - 1, cfg.scale_width, cfg.scale_layers, seed=cfg.seed).to(device) if K > 1 else None
         self.net_opt = torch.optim.Adam(self.net.parameters(), lr=cfg.scale_lr) if self.net is not None else None
         self.schedule = build_schedule(cfg, K)

@@ -68,10 +68,9 @@ def test_triplane_is_the_sum_of_three_bilinear_plane_lookups() -> None:
 
 def test_anchor_colour_planes_start_as_the_grid_and_fit_texture_the_grid_cannot() -> None:
     """A 64-texel checker on a wall: the 16^3 grid alone blurs it; with 64^2 colour planes (zero at
-    the start, so the field first renders as the grid alone) the same Adam steps fit it. Only the
-    anchor gets planes."""
-    cfg = FieldConfig(resolution=16, initial_resolution=16, anchor_planes=64)
-    plain, planed = make_field(cfg, BOX), make_field(cfg, BOX, anchor=True)
+    the start, so the field first renders as the grid alone) the same Adam steps fit it."""
+    cfg = FieldConfig(resolution=16, initial_resolution=16)
+    plain, planed = make_field(cfg, BOX), make_field(cfg, BOX, planes=64)
     assert plain.planes is None and planed.planes.shape == (3 * 64 * 64, 3)
     planed.grid.data.copy_(plain.grid.data)
     g = torch.Generator().manual_seed(0)

@@ -456,25 +456,46 @@ def test_final_phase_trims_by_the_inputs_source(tiny_dataset: Path) -> None:
 
 def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tiny_dataset: Path, tmp_path: Path) -> None:
     """``field.object_resolution: auto`` gives every object but the anchor a grid of about a voxel
-    per training pixel, grown on the anchor's schedule; the trained run loads each at its own size.
-    0 keeps every object at ``resolution`` (as before the option)."""
+    per training pixel on SfM inputs (here the tiny scene's oracle inputs relabelled), grown on the
+    anchor's schedule; the trained run loads each at its own size. On the oracle's inputs, and
+    with 0, every object stays at ``resolution`` (as before the option)."""
     from osn.model.fields import FieldConfig
     from osn.model.run import load_run
-    from osn.train.config import object_resolutions
+    from osn.train.config import MIN_ANCHOR_PLANES, object_resolutions
     from osn.train.loop import train
 
-    inputs = oracle_inputs(tiny_dataset)
+    oracle = oracle_inputs(tiny_dataset)
+    inputs = dataclasses.replace(oracle, source="colmap")
     fcfg = FieldConfig(kind="dense", resolution=24, initial_resolution=16, upsample_steps=1, object_resolution="auto")
     sched = object_resolutions(fcfg, inputs)
+    assert object_resolutions(fcfg, oracle) == [[16, 24]] * oracle.num_objects
     a = inputs.anchor_pos
     assert sched[a] == [16, 24]
     assert all(s[-1] < 24 and s[0] < s[-1] for k, s in enumerate(sched) if k != a), sched  # objects ~10 px wide at 32 px
     train(tmp_path / "r", _cfg(field=fcfg), inputs=inputs, progress=False)
     run = load_run(tmp_path / "r")
     assert [f.resolution for f in run.fields] == [s[-1] for s in sched]
-    # Only the anchor carries colour planes (``anchor_planes``, 256 by default), and they trained.
+    # Only the anchor carries colour planes (``anchor_planes: auto``: a texel about a pixel at its
+    # median sparse depth), they trained, and the run loads them at their size.
+    from osn.train.config import anchor_plane_size
+    P = anchor_plane_size(fcfg, inputs)
+    assert MIN_ANCHOR_PLANES < P < 128, P  # the tiny scene: 32 px frames
     assert [f.planes is not None for f in run.fields] == [k == a for k in range(inputs.num_objects)]
-    assert run.fields[a].planes.shape == (3 * 256**2, 3) and run.fields[a].planes.abs().max() > 0
+    assert run.fields[a].plane_size == P and run.fields[a].planes.abs().max() > 0
+    assert anchor_plane_size(dataclasses.replace(fcfg, anchor_planes=0), inputs) == 0
+    assert anchor_plane_size(dataclasses.replace(fcfg, anchor_planes=40), inputs) == 40
+    assert anchor_plane_size(dataclasses.replace(fcfg, kind="tensorf"), inputs) == 0
+    assert anchor_plane_size(fcfg, oracle) == 0 and anchor_plane_size(dataclasses.replace(fcfg, anchor_planes=40), oracle) == 40
+
+    def anchor_as(**kw) -> "SceneInputs":
+        objects = list(inputs.objects)
+        objects[a] = dataclasses.replace(objects[a], **kw)
+        return dataclasses.replace(inputs, objects=objects)
+
+    o = inputs.objects[a]
+    for unit in (1e-3, 1e4):  # the anchor's unknown unit does not change the texel count
+        assert anchor_plane_size(fcfg, anchor_as(bbox=o.bbox * unit, sparse_depth=[d * unit for d in o.sparse_depth])) == P
+    assert anchor_plane_size(fcfg, anchor_as(sparse_depth=[d[:0] for d in o.sparse_depth])) == 0  # no depth: no planes
     # A run whose checkpoint predates the two options loads as it trained: objects at
     # ``resolution``, no planes (``FIELD_ADDED_LATER``).
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
