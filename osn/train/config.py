@@ -52,7 +52,6 @@ _RULES: dict[str, Rule] = {
 ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9}
 
 
-
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
 #: scale of the sparse-depth loss in multiples of the batch's median residual (docs/preprocess.md).
 DEPTH_ROBUST_SFM = 3.0
@@ -259,7 +258,7 @@ def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs) -> list[list[int]
     anchor's ends at ``field.resolution``, every other object's at ``field.object_resolution``
     (0: ``resolution``; never above it). ``auto``: :func:`footprint_resolution` on SfM inputs (or
     a user's video), where the demo's objects at 64^3 had voxels of 0.3-0.5 px and coarser ones
-    gained their test pixels up to 1.8 dB and the margin of best of N 0.2 dB over three seeds;
+    gained their test pixels up to 1.8 dB and the margin of best of N 0.26 dB over three seeds;
     ``resolution`` on the oracle's, whose exact contacts lost recall with them (valid-set IoU
     0.934 -> 0.872, one seed; docs/training.md)."""
     out = []
