@@ -23,8 +23,8 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import (TrainConfig, anchor_plane_size, object_resolutions, resolve_anchor_guide_samples, resolve_depth_robust,
-                              resolve_final_label_trim, resolve_w_edge)
+from osn.train.config import (TrainConfig, anchor_plane_size, object_resolutions, resolve_anchor_guide_samples,
+                              resolve_depth_robust, resolve_final_label_trim, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors

@@ -461,7 +461,7 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     with 0, every object stays at ``resolution`` (as before the option)."""
     from osn.model.fields import FieldConfig
     from osn.model.run import load_run
-    from osn.train.config import MIN_ANCHOR_PLANES, object_resolutions
+    from osn.train.config import MIN_ANCHOR_PLANES, anchor_plane_size, object_resolutions
     from osn.train.loop import train
 
     oracle = oracle_inputs(tiny_dataset)
@@ -477,7 +477,6 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     assert [f.resolution for f in run.fields] == [s[-1] for s in sched]
     # Only the anchor carries colour planes (``anchor_planes: auto``: a texel about a pixel at its
     # median sparse depth), they trained, and the run loads them at their size.
-    from osn.train.config import anchor_plane_size
     P = anchor_plane_size(fcfg, inputs)
     assert MIN_ANCHOR_PLANES < P < 128, P  # the tiny scene: 32 px frames
     assert [f.planes is not None for f in run.fields] == [k == a for k in range(inputs.num_objects)]
