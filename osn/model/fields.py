@@ -327,7 +327,8 @@ class TensoRFVM(Field):
 
 
 #: ``field`` options added after runs were first written, with the value that trained those runs
-#: (``TrainConfig.from_yaml(..., run_config=True)`` and ``load_run`` fill them in).
+#: (``TrainConfig.from_yaml(..., run_config=True)`` fills them in; ``load_run`` reads each field's
+#: size and planes from the checkpoint itself).
 FIELD_ADDED_LATER: dict[str, Any] = {"object_resolution": 0, "anchor_planes": 0}
 
 

@@ -18,7 +18,7 @@ import torch
 
 from scenecore import dataset as D
 from scenecore.cameras import pixel_rays
-from osn.model.fields import FIELD_ADDED_LATER, Field, FieldConfig, make_field
+from osn.model.fields import Field, FieldConfig, make_field
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
@@ -205,7 +205,7 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     dev = torch.device(device)
     cfg = ckpt["config"]
     try:  # a checkpoint of another field kind, size or layout
-        fcfg = FieldConfig(**{**FIELD_ADDED_LATER, **cfg["field"]})  # an older run: options it trained without
+        fcfg = FieldConfig(**cfg["field"])
         fields = []
         for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
             planes = int(round(math.sqrt(sd["planes"].shape[0] / 3))) if "planes" in sd else 0  # the anchor's

@@ -495,8 +495,8 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     for unit in (1e-3, 1e4):  # the anchor's unknown unit does not change the texel count
         assert anchor_plane_size(fcfg, anchor_as(bbox=o.bbox * unit, sparse_depth=[d * unit for d in o.sparse_depth])) == P
     assert anchor_plane_size(fcfg, anchor_as(sparse_depth=[d[:0] for d in o.sparse_depth])) == 0  # no depth: no planes
-    # A run whose checkpoint predates the two options loads as it trained: objects at
-    # ``resolution``, no planes (``FIELD_ADDED_LATER``).
+    # A run whose checkpoint predates the two options loads as it trained: each field at the
+    # size its checkpoint holds, no planes.
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
     for key in ("object_resolution", "anchor_planes"):
         del ckpt["config"]["field"][key]
