@@ -7,7 +7,7 @@ Both go through the benchmark's scorer (`benchgen.score.scorer.score`) on exact 
 Reported: both wall times, the PSNR the pre-selected match loses against the best of all N (exact),
 and how often the match is the same sample.
 
-    python benchmarks/bench_bestofn.py RUN DATASET [-n 1000] [--views 3] [--levels 24] [--topk 2]
+    python benchmarks/bench_bestofn.py RUN DATASET [-n 1000] [--views 3] [--levels 64] [--topk 2]
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from benchutil import print_command
 
 from benchgen.score.scorer import score
 from benchgen.score.truth import load_truth
-from osn.evaluate.bestofn import preselect, sample_name
+from osn.evaluate.bestofn import EvalConfig, preselect, sample_name
 from osn.evaluate.exact import RenderedCandidates
 from osn.evaluate.layered import layered_psnr
 from osn.model.run import load_run
@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("dataset")
     p.add_argument("-n", type=int, default=1000, help="samples N")
     p.add_argument("--views", type=int, default=3, help="test views evaluated (0 = all)")
-    p.add_argument("--levels", type=int, default=24)
-    p.add_argument("--topk", type=int, default=2)
+    p.add_argument("--levels", type=int, default=EvalConfig.levels)
+    p.add_argument("--topk", type=int, default=EvalConfig.topk)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     print_command()

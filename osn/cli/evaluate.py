@@ -66,8 +66,10 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", help="samples file (default RUN/samples.npz from `osn sample`)")
     p.add_argument("--out", help="report directory (default RUN/report)")
     p.add_argument("--max-views", type=int, default=30, help="evaluate at most this many test views, evenly spread (0 = all)")
-    p.add_argument("--levels", type=int, default=24, help="quantised scales per object in the layered search")
-    p.add_argument("--topk", type=int, default=2, help="candidates per ground truth rendered exactly before matching")
+    p.add_argument("--levels", type=int, default=EvalConfig.levels,
+                   help="quantised scales per object in the layered search, at quantiles of the samples' scales "
+                        "(more: a closer pre-selection, a slower search)")
+    p.add_argument("--topk", type=int, default=EvalConfig.topk, help="candidates per ground truth rendered exactly before matching")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     p.add_argument("--no-true-scales", action="store_true",
                    help="skip the 'true scales' reference row: the run's fields rendered at every ground truth's exact "

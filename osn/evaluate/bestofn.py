@@ -56,7 +56,8 @@ class EvalConfig:
     Attributes:
         max_views: evaluate at most this many test views (evenly spread over the test set;
             0 = all). The paper's protocol uses all 210.
-        levels: quantised scales per object for the layered search (at least 2).
+        levels: quantised scales per object for the layered search (at least 2), at quantiles
+            of the samples' scales (:func:`osn.evaluate.layered.scale_levels`).
         topk: candidates per ground truth rendered exactly before the match is decided.
         lpips: compute LPIPS (needs the weights installed by ``make setup``).
         valid_points: Monte-Carlo points of the valid-set accuracy, as many again in the exact
@@ -67,7 +68,7 @@ class EvalConfig:
     """
 
     max_views: int = 30
-    levels: int = 24
+    levels: int = 64
     topk: int = 2
     lpips: bool = True
     valid_points: int = 200_000

@@ -23,11 +23,19 @@ from osn.sample.configurations import Samples
 
 
 def scale_levels(sbar: np.ndarray, levels: int) -> list[np.ndarray]:
-    """Per object position of ``sbar (N, K)``: geometric grid of ``levels`` scales covering the samples' range."""
+    """Per object position of ``sbar (N, K)``: at most ``levels`` scales at evenly spaced quantiles
+    of the samples' log-scales, from their smallest to their largest (ascending, distinct).
+
+    Quantiles rather than an even log grid because the samples crowd one end of their range (a
+    box sampled evenly in scale holds more of them at large scales): the levels go where the
+    samples are, and a sample's layer is that much nearer its own scale (docs/metrics.md)."""
     out = []
     for k in range(sbar.shape[1]):
-        lo, hi = float(sbar[:, k].min()), float(sbar[:, k].max())
-        out.append(np.array([lo]) if hi <= lo * (1 + 1e-9) or levels <= 1 else np.geomspace(lo, hi, levels))
+        lg = np.log(sbar[:, k].astype(np.float64))
+        if levels <= 1 or lg.max() - lg.min() <= 1e-9:
+            out.append(np.array([float(sbar[:, k].min())]))
+            continue
+        out.append(np.exp(np.unique(np.quantile(lg, np.linspace(0.0, 1.0, levels)))))
     return out
 
 
