@@ -70,13 +70,13 @@ def main() -> None:
         b = np.exp(thr.numpy()) * units[j] / units[i]  # bound on actual_i / actual_j
         exact_b = ev.region.ratio_bounds[ids[i]][ids[j]]
         print(f"pair {ids[i]} in front of {ids[j]}: {len(b)} rays, bound min {b[0]:.3f} trimmed {b[int(trim * len(b))]:.3f} exact {exact_b}")
-    s_all = torch.cat(ev.s_mc).float()  # the monitor's uniform and inner points (stratified)
+    s_all = torch.cat(ev.s_mc).float()  # the monitor's uniform, inner and near points (stratified)
     pv = cons.pair_violations(full_sbar(s_all, st.ranges, st.anchor))
     err = pv.sum(1)
     lab = trimmed_labels(pv, cons.sizes(), trim).bool().numpy()
     n = len(ev.s_mc[0])
-    acc = set_accuracy(ev.points, lab[:n], lab[n:])
-    inner_err = err[n:][exact]
+    acc = set_accuracy(ev.points, lab[:n], lab[n:2 * n], lab[2 * n:])
+    inner_err = err[n:2 * n][exact]
     spread = f"{float(inner_err.min()):.0f}-{float(inner_err.max()):.0f}" if len(inner_err) else "n/a (no region point drawn)"
     print(
         f"pool {cons.rays} rays, {cons.count} constraints; exact configurations violate {spread}, "

@@ -19,8 +19,9 @@ def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_0
     and which of the region's pair bounds it gets wrong (``limits``).
 
     Stratified Monte Carlo (:func:`scenecore.validity.set_samples`): ``points`` uniform in the
-    scale network's box and as many in the product of the region's intervals, so a region of
-    1e-6 of the box (8 objects) is resolved as well as one of 1e-2. Needs the inputs'
+    scale network's box, as many in the product of the region's intervals and as many in that
+    product widened (where a learned set errs), so a region of 1e-6 of the box (8 objects) is
+    resolved as well as one of 1e-2. Needs the inputs'
     ground-truth units (oracle or aligned SfM). ``exact_points`` says how many region points
     were drawn; with none, recall and IoU are NaN.
 
@@ -33,14 +34,14 @@ def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_0
     if K == 1:
         return {"precision": 1.0, "recall": 1.0, "iou": 1.0, "points": 0, "limits": []}
     pts = set_samples(region, dataset_box(run.inputs, run.ranges, region.num_objects), points, seed)
-    learned = [run.scores(free_normalised(run.inputs, run.ranges, x)) > VALID_THRESHOLD for x in (pts.uniform, pts.inner)]
+    learned = [run.scores(free_normalised(run.inputs, run.ranges, x)) > VALID_THRESHOLD for x in pts.strata]
     names = {o.id: o.name for o in run.inputs.objects}
 
     def name(i: int) -> str:
         return names.get(i, f"object {i}")  # an object the inputs leave out (held at scale 1)
 
     limits = [{"pair": f"{name(e['i'])} < {name(e['j'])}", **e} for e in limiting_bounds(region, pts, *learned)]
-    return {**set_accuracy(pts, *learned), "points": 2 * points, "limits": limits}
+    return {**set_accuracy(pts, *learned), "points": 3 * points, "limits": limits}
 
 
 def _exactly_valid(run: TrainedRun, region, actual: np.ndarray) -> np.ndarray:

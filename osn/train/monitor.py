@@ -31,9 +31,9 @@ class TrainingMonitor:
         flat: ``(N,)`` the scored training pixels (frame * HW + pixel), fixed for the run.
         region: the exact region when valid-set accuracy is measured, else None (a single object,
             no region given, or inputs without ground-truth units).
-        points: with ``region``, ``iou_samples`` fixed points uniform in the sampling box and as
-            many in the exact region's interval box (:class:`scenecore.validity.SetSamples`).
-        s_mc: their free normalised scales, ``[(M, K-1), (M, K-1)]`` float64 (uniform, inner).
+        points: with ``region``, ``iou_samples`` fixed points uniform in the sampling box, as
+            many in the exact region's interval box and as many near it (:class:`scenecore.validity.SetSamples`).
+        s_mc: their free normalised scales, three ``(M, K-1)`` float64 (uniform, inner, near).
     """
 
     def __init__(self, trainer: Trainer, region: ValidRegion | None) -> None:
@@ -45,6 +45,7 @@ class TrainingMonitor:
         n = min(cfg.eval_pixels, len(pool))
         self.flat = pool[torch.randperm(len(pool), generator=g)[:n].to(st.device)]
         self.region = None
+        self.exact_all: np.ndarray | None = None
         # Scales need only the units; test cameras (world_to_anchor) are evaluation's concern.
         problem = ground_truth_problem(st.inputs, test_views=False) if region is not None else None
         if problem:
@@ -54,7 +55,7 @@ class TrainingMonitor:
             ranges = st.ranges.cpu().numpy()
             # Stratified points: a region of 1e-6 of the box (8 objects) has none among uniform ones.
             self.points = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), cfg.iou_samples, seed=12345)
-            self.s_mc = [torch.from_numpy(free_normalised(st.inputs, ranges, x)) for x in (self.points.uniform, self.points.inner)]
+            self.s_mc = [torch.from_numpy(free_normalised(st.inputs, ranges, x)) for x in self.points.strata]
             if not self.points.exact.any():
                 log.warning("valid-set accuracy: none of %d points in the exact region's interval box is valid; "
                             "recall and IoU are not measured (NaN)", cfg.iou_samples)
@@ -87,16 +88,18 @@ class TrainingMonitor:
             learned = [(tr.net(s.float().to(tr.device)) > 0).cpu().numpy() for s in self.s_mc]
             acc = set_accuracy(self.points, *learned)
             m.update({k: acc[k] for k in ("precision", "recall", "iou")})
-            m["scale_rel_err"] = self._interval_error(*learned)
+            m["scale_rel_err"] = self._interval_error(learned)
         return m
 
-    def _interval_error(self, learned_uniform: np.ndarray, learned_inner: np.ndarray) -> float:
+    def _interval_error(self, learned: list[np.ndarray]) -> float:
         """Mean relative error of the learned per-object scale intervals (dataset scales, within
-        the sampled box; the learned points of both point sets) against the exact region's
-        intervals (its points); 1.0 when either set is empty."""
-        pts = self.points
-        learned = np.concatenate([pts.uniform[learned_uniform], pts.inner[learned_inner]])
-        exact = pts.inner[pts.exact]
+        the sampled box) against the exact region's, both read off the same points (all three
+        strata; ``learned``: membership per stratum); 1.0 when either set is empty."""
+        strata = self.points.strata
+        if self.exact_all is None:  # the region's points of every stratum, found once
+            self.exact_all = np.concatenate([x[np.asarray(self.region.contains(x), bool)] for x in strata])
+        learned = np.concatenate([x[m] for x, m in zip(strata, learned)])
+        exact = self.exact_all
         if not len(learned) or not len(exact):
             return 1.0
         errs = []
