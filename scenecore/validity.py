@@ -244,7 +244,6 @@ class SetSamples:
         uniform: ``(n, K)`` scales uniform in the box (the anchor at 1).
         inner: ``(n, K)`` scales uniform in the inner box (the region's intervals cut to the box).
         near: ``(n, K)`` scales uniform in the near box.
-        in_inner: ``(n,)`` which ``uniform`` points lie in the inner box.
         in_near: ``(n,)`` which ``uniform`` points lie in the near box.
         near_in_inner: ``(n,)`` which ``near`` points lie in the inner box.
         exact: ``(n,)`` which ``inner`` points lie in the region.
@@ -255,7 +254,6 @@ class SetSamples:
     uniform: np.ndarray
     inner: np.ndarray
     near: np.ndarray
-    in_inner: np.ndarray
     in_near: np.ndarray
     near_in_inner: np.ndarray
     exact: np.ndarray
@@ -289,15 +287,14 @@ def set_samples(region: ValidRegion, box: np.ndarray, samples: int, seed: int = 
     uniform = ib.draw(samples, rng, box[:, 0], box[:, 1])
     if ib.volume == 0.0:
         none = np.zeros(samples, dtype=bool)
-        return SetSamples(uniform, uniform.copy(), uniform.copy(), none, none.copy(), none.copy(), none.copy(), 0.0, 0.0)
+        return SetSamples(uniform, uniform.copy(), uniform.copy(), none, none.copy(), none.copy(), 0.0, 0.0)
     inner = ib.draw(samples, rng)
     f = ib.free
     pad = NEAR_WIDTHS * (ib.hi - ib.lo)
     near_lo, near_hi = np.maximum(box[:, 0], ib.lo - pad), np.minimum(box[:, 1], ib.hi + pad)
     near = ib.draw(samples, rng, near_lo, near_hi)
     near_volume = float(np.exp(np.sum(np.log((near_hi[f] - near_lo[f]) / (box[f, 1] - box[f, 0])))))
-    return SetSamples(uniform, inner, near, _inside(uniform, f, ib.lo, ib.hi), _inside(uniform, f, near_lo, near_hi),
-                      _inside(near, f, ib.lo, ib.hi), np.asarray(region.contains(inner), dtype=bool), ib.volume, near_volume)
+    return SetSamples(uniform, inner, near, _inside(uniform, f, near_lo, near_hi), _inside(near, f, ib.lo, ib.hi), np.asarray(region.contains(inner), dtype=bool), ib.volume, near_volume)
 
 
 def _learned_share(samples: SetSamples, lu: np.ndarray, li: np.ndarray, ln: np.ndarray) -> float:

@@ -61,7 +61,8 @@ class EvalConfig:
         topk: candidates per ground truth rendered exactly before the match is decided.
         lpips: compute LPIPS (needs the weights installed by ``make setup``).
         valid_points: Monte-Carlo points of the valid-set accuracy, as many again in the exact
-            region's interval box (stratified; :func:`osn.evaluate.valid_set.valid_set_accuracy`).
+            region's interval box and in that box widened (stratified;
+            :func:`osn.evaluate.valid_set.valid_set_accuracy`).
         seed: seed of Monte-Carlo points.
         true_scales: also score the fields at every ground truth's exact scales (what best of N
             approaches with these fields; G more candidates rendered).
