@@ -271,21 +271,20 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
 def stage_train(args: argparse.Namespace, p: DemoPaths, cfg: Any, beside: BackgroundCommand | None = None) -> dict:
     """Train (or resume) on the chosen inputs, monitored against the dataset's exact region.
 
-    While ``beside`` (the ground truth's rendering) runs, training uses one intra-op thread, and
-    all of torch's again once it has ended (checked between steps): with two threads it is only
-    ~1.15x faster on two cores, its second thread mostly spinning, and that core renders the
-    ground truth instead. The fields are bit-identical either way."""
+    If ``beside`` (the ground truth's rendering) runs when training starts, training uses one
+    intra-op thread to its end: with two threads it is only ~1.15x faster on two cores, its second
+    thread mostly spinning, and that core renders the ground truth instead. It does not go back to
+    all threads when the ground truth ends: the trained fields and scale network depend on the
+    thread count (reductions split differently; on the SfM demo two 1-thread trainings are bit for
+    bit equal, a 2-thread one is not), so a switch at a moment of the wall clock made each
+    run's result depend on the machine's speed (docs/training.md)."""
     resume = (p.run / "checkpoint.pt").exists()
     inputs = None if resume else load_inputs(p.sfm if args.inputs == "colmap" else p.oracle)
     threads = torch.get_num_threads()
-
-    def threads_beside() -> None:
-        want = 1 if beside is not None and beside.running() else threads
-        if torch.get_num_threads() != want:
-            torch.set_num_threads(want)
-
+    if beside is not None and beside.running():
+        torch.set_num_threads(1)
     try:
-        train_on_dataset(p.dataset, p.run, cfg, inputs=inputs, resume=resume, between_steps=threads_beside)
+        train_on_dataset(p.dataset, p.run, cfg, inputs=inputs, resume=resume)
     finally:
         torch.set_num_threads(threads)
     last = read_metrics(p.run / "metrics.jsonl")[-1]

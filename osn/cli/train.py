@@ -12,7 +12,6 @@ import argparse
 import json
 import logging
 from pathlib import Path
-from typing import Callable
 
 from scenecore.cli import UserError, subcommand
 from scenecore.dataset import load_valid_region, read_json
@@ -52,7 +51,6 @@ def train_on_dataset(
     resume: bool = False,
     max_iterations: int | None = None,
     progress: bool = True,
-    between_steps: Callable[[], None] | None = None,
 ) -> Path:
     """What ``osn train DATASET`` runs: :func:`osn.train.train` measured against the dataset's
     exact region, on ``inputs`` or (a new run without them) the dataset's oracle inputs.
@@ -67,7 +65,7 @@ def train_on_dataset(
     if not resume and inputs is None:
         inputs = oracle_inputs(dataset)
     return train(out, cfg, inputs=inputs, region=region, dataset=dataset, resume=resume,
-                 max_iterations=max_iterations, progress=progress, between_steps=between_steps)
+                 max_iterations=max_iterations, progress=progress)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:

@@ -33,7 +33,7 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import yaml
@@ -91,10 +91,8 @@ def _metrics_record(trainer: Trainer, phase: Phase, monitor: TrainingMonitor) ->
     return rec
 
 
-def _iterate(trainer: Trainer, monitor: TrainingMonitor, out: Path, stop: int, progress: bool,
-             between_steps: Callable[[], None] | None = None) -> None:
-    """Step until global iteration ``stop``, writing metric lines and checkpoints on the way;
-    ``between_steps()`` is called before every step."""
+def _iterate(trainer: Trainer, monitor: TrainingMonitor, out: Path, stop: int, progress: bool) -> None:
+    """Step until global iteration ``stop``, writing metric lines and checkpoints on the way."""
     from tqdm import tqdm
 
     cfg = trainer.cfg
@@ -102,8 +100,6 @@ def _iterate(trainer: Trainer, monitor: TrainingMonitor, out: Path, stop: int, p
     bar = tqdm(total=trainer.total, initial=trainer.iteration, desc="osn train", disable=not progress, dynamic_ncols=True)
     t_start = time.perf_counter() - trainer.elapsed
     while trainer.iteration < stop:
-        if between_steps is not None:
-            between_steps()
         ph = trainer.phase(trainer.iteration)
         try:
             losses = trainer.step()
@@ -139,7 +135,6 @@ def train(
     resume: bool = False,
     max_iterations: int | None = None,
     progress: bool = True,
-    between_steps: Callable[[], None] | None = None,
 ) -> Path:
     """Train OSN on per-object ``inputs`` into run directory ``out``; returns ``out``.
 
@@ -154,8 +149,6 @@ def train(
         max_iterations: stop after that global iteration (with a checkpoint), as an
             interruption would.
         progress: show a progress bar.
-        between_steps: called before every step, e.g. to change torch's intra-op threads
-            (``osn demo``); it must not touch the training state.
     """
     out = Path(out)
     check_run_directory(out, resume)
@@ -175,7 +168,7 @@ def train(
         truncate_metrics(out / "metrics.jsonl", trainer.iteration)
     monitor = TrainingMonitor(trainer, region)
     stop = min(trainer.total, max_iterations) if max_iterations is not None else trainer.total
-    _iterate(trainer, monitor, out, stop, progress, between_steps)
+    _iterate(trainer, monitor, out, stop, progress)
     if trainer.fallbacks:
         log.warning("%d field steps used a fallback scale vector (no candidate above %.2f)", trainer.fallbacks, cfg.valid_threshold)
     return out

@@ -54,32 +54,6 @@ def test_resume_equals_uninterrupted(tiny_dataset: Path, tiny_region: ValidRegio
     assert [{k: v for k, v in r.items() if k not in drop} for r in ma] == [{k: v for k, v in r.items() if k not in drop} for r in mb]
 
 
-def test_intra_op_threads_changed_between_steps_train_the_same_fields(
-    tiny_dataset: Path, tiny_region: ValidRegion, tmp_path: Path
-) -> None:
-    """``between_steps`` runs before every step; switching torch's intra-op threads there (what
-    ``osn demo`` does while the ground truth renders beside training) trains bit-identical
-    fields and scale network: no op's result depends on the thread count."""
-    cfg = _cfg()
-    a = train(tmp_path / "a", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False)
-    threads, calls = torch.get_num_threads(), []
-
-    def switch() -> None:
-        calls.append(torch.get_num_threads())
-        torch.set_num_threads(1 if len(calls) % 2 else 2)
-
-    try:
-        b = train(tmp_path / "b", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False,
-                  between_steps=switch)
-    finally:
-        torch.set_num_threads(threads)
-    assert len(calls) == _metrics(a)[-1]["iteration"] and set(calls[1:]) == {1, 2}
-    sa, sb = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (a, b))
-    for fa, fb in zip(sa["fields"], sb["fields"]):
-        assert all(torch.equal(fa[k], fb[k]) for k in fa)
-    assert all(torch.equal(sa["net"][k], sb["net"][k]) for k in sa["net"])
-
-
 def test_training_measures_only_against_the_region_its_caller_gives(
     tiny_dataset: Path, tiny_region: ValidRegion, tmp_path: Path
 ) -> None:
