@@ -258,7 +258,8 @@ def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs) -> list[list[int]
     anchor's ends at ``field.resolution``, every other object's at ``field.object_resolution``
     (0: ``resolution``; never above it). ``auto``: :func:`footprint_resolution` on SfM inputs (or
     a user's video), where the demo's objects at 64^3 had voxels of 0.3-0.5 px and coarser ones
-    gained their test pixels up to 1.8 dB and the margin of best of N 0.26 dB over three seeds;
+    gained their test pixels up to 1.8 dB and the margin of best of N 0.26 dB over three seeds
+    (as the layered search of 2026-11-27 measured it);
     ``resolution`` on the oracle's, whose exact contacts lost recall with them (valid-set IoU
     0.934 -> 0.872, one seed; docs/training.md)."""
     out = []
@@ -282,9 +283,11 @@ def anchor_plane_size(fcfg: FieldConfig, inputs: SceneInputs) -> int:
     inputs (or a user's video): about one texel per pixel where the anchor's surfaces are, the
     longest side of its box over the pixel footprint at the median of its sparse depths (depth /
     focal length), within [:data:`MIN_ANCHOR_PLANES`, :data:`MAX_ANCHOR_PLANES`] (the demo: 255),
-    0 when the anchor has no sparse depth; there best of 1000 gained 0.5 dB on each of three seeds.
-    Off on the oracle's inputs, where it is not measured with the objects' fields they keep
-    (docs/training.md)."""
+    0 when the anchor has no sparse depth; there best of 1000 gained 0.5 dB on each of three seeds
+    (the search of 2026-11-27). Off on the oracle's inputs, where it is not measured with the
+    objects' fields they keep. On gnome-house at 128 px (397 texels) the valid set lost 0.015 IoU
+    on average over three seeds with all three options and training took 1.3x as long; one seed
+    points at the planes (docs/training.md)."""
     if fcfg.kind != "dense" or fcfg.anchor_planes == 0 or (fcfg.anchor_planes == "auto" and inputs.source == "oracle"):
         return 0
     if fcfg.anchor_planes != "auto":
