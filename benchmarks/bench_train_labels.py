@@ -1,6 +1,6 @@
 """Label quality of the scale phase from saved fields (docs/training.md, "Label quality").
 
-    python benchmarks/bench_train_labels.py RUN CHECKPOINT [--steps N] [key=value ...]
+    python benchmarks/bench_train_labels.py RUN CHECKPOINT [--steps N] [--trims T,T,...] [--points N] [key=value ...]
 
 ``RUN`` is an ``osn train`` run directory (config, inputs, dataset with ``valid_region.json``);
 ``CHECKPOINT`` a checkpoint of it whose fields are to be labelled (for example a copy of
@@ -10,9 +10,15 @@ pool options such as ``coverage_threshold``, ``uncertain_acc``, ``label_stride``
 them. Prints the pool size, per object pair the bound its rays set (trimmed by
 ``final_label_trim``, in dataset scales) next to the exact one, the violations of the
 exact configurations against the lowest (the noise floor), the IoU / precision / recall of the
-*labelled* set (``depth_order.trimmed_labels`` on the whole pool) on the evaluator's Monte-Carlo
+*labelled* set (``depth_order.trimmed_labels`` on the whole pool) on the monitor's Monte-Carlo
 samples, then trains a fresh scale network for ``--steps`` scale steps on those fields and
 prints its IoU every 50 steps.
+
+``--trims`` labels the same pool at each of several trims instead and prints, per trim, the
+labelled set's IoU / precision / recall on ``osn evaluate``'s stratified points (``--points``
+per stratum, seed 0; :func:`osn.evaluate.valid_set.valid_set_accuracy`'s estimator) and the
+pair bounds it misses or reaches past most (``missed`` / ``excess``, shares of the region's
+volume): how tight the final phase's labels should be on these fields (docs/training.md).
 """
 
 from __future__ import annotations
@@ -29,7 +35,8 @@ import yaml
 from osn.preprocess.inputs import load_inputs
 from osn.model.scale_net import full_sbar
 from osn.model.depth_order import trimmed_labels
-from scenecore.validity import set_accuracy
+from scenecore.validity import limiting_bounds, set_accuracy, set_samples
+from osn.evaluate.units import dataset_box, free_normalised
 from osn.cli.train import dataset_region
 from osn.train import Phase, TrainConfig, Trainer, TrainingMonitor
 
@@ -41,6 +48,8 @@ def main() -> None:
     ap.add_argument("run")
     ap.add_argument("checkpoint")
     ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--trims", default=None, help="comma-separated trims: the labelled set at each (no network trained)")
+    ap.add_argument("--points", type=int, default=200_000, help="stratified points per stratum for --trims")
     ap.add_argument("overrides", nargs="*", help="key=value training-config overrides")
     a = ap.parse_intermixed_args()
     print_command()
@@ -70,6 +79,9 @@ def main() -> None:
         b = np.exp(thr.numpy()) * units[j] / units[i]  # bound on actual_i / actual_j
         exact_b = ev.region.ratio_bounds[ids[i]][ids[j]]
         print(f"pair {ids[i]} in front of {ids[j]}: {len(b)} rays, bound min {b[0]:.3f} trimmed {b[int(trim * len(b))]:.3f} exact {exact_b}")
+    if a.trims:
+        sweep_trims(tr, ev.region, [float(t) for t in a.trims.split(",")], a.points)
+        return
     s_all = torch.cat(ev.s_mc).float()  # the monitor's uniform, inner and near points (stratified)
     pv = cons.pair_violations(full_sbar(s_all, st.ranges, st.anchor))
     err = pv.sum(1)
@@ -90,6 +102,26 @@ def main() -> None:
         if (i + 1) % 50 == 0:
             m = ev()
             print(f"step {i + 1}: IoU {m['iou']:.3f} precision {m['precision']:.3f} recall {m['recall']:.3f} noise floor {out['noise_floor']:.4f} valid fraction {out['valid_frac']:.4f}", flush=True)
+
+
+def sweep_trims(tr: Trainer, region, trims: list[float], points: int) -> None:
+    """The pool's labelled set at each trim, on ``osn evaluate``'s stratified points."""
+    st, cons = tr.st, tr.cache["constraints"]
+    pts = set_samples(region, dataset_box(st.inputs, st.ranges.cpu().numpy(), region.num_objects), points, 0)
+    pv = [cons.pair_violations(full_sbar(torch.from_numpy(free_normalised(st.inputs, st.ranges.cpu().numpy(), x)).float(), st.ranges, st.anchor))
+          for x in pts.strata]
+    names = {o.id: o.name for o in st.inputs.objects}
+    # One noise floor for all points (the fewest violations among them), as a scale step takes it
+    # among its samples.
+    every = torch.cat(pv)
+    floor = every[every.sum(1).argmin()]
+    for trim in trims:
+        allow = floor + torch.floor(trim * cons.sizes())
+        lab = [(v <= allow[None]).all(1).numpy() for v in pv]
+        acc = set_accuracy(pts, *lab)
+        worst = sorted(limiting_bounds(region, pts, *lab), key=lambda e: -(e["missed"] + e["excess"]))[:3]
+        bounds = ", ".join(f"{names.get(e['i'])} < {names.get(e['j'])} missed {e['missed']:.3f} excess {e['excess']:.3f}" for e in worst)
+        print(f"trim {trim:g}: labelled set IoU {acc['iou']:.3f} precision {acc['precision']:.3f} recall {acc['recall']:.3f}; {bounds}", flush=True)
 
 
 if __name__ == "__main__":

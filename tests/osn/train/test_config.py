@@ -137,12 +137,13 @@ def test_auto_depth_robustness_is_off_for_exact_depths_only() -> None:
 
 
 def test_auto_final_label_trim_is_tight_on_exact_contacts_only() -> None:
-    """``final_label_trim: auto``: 0.2% of a pair's rays on the oracle's exact contacts, the rounds'
-    1% on SfM's and anything else's; a number is taken as it is, a word other than auto refused."""
+    """``final_label_trim: auto``: 0.2% of a pair's rays on the oracle's exact contacts, 0.3% on
+    SfM's and anything else's (tighter than the rounds' 1%); a number is taken as it is, a word
+    other than auto refused."""
     assert TrainConfig().final_label_trim == "auto"
     assert resolve_final_label_trim("auto", "oracle") == FINAL_LABEL_TRIM_ORACLE == 0.002
     assert resolve_final_label_trim("auto", "colmap") == resolve_final_label_trim("auto", "video") == FINAL_LABEL_TRIM_SFM
-    assert FINAL_LABEL_TRIM_SFM == TrainConfig().label_trim
+    assert FINAL_LABEL_TRIM_ORACLE < FINAL_LABEL_TRIM_SFM == 0.003 < TrainConfig().label_trim
     assert resolve_final_label_trim(0.005, "colmap") == 0.005 and resolve_final_label_trim(0, "oracle") == 0.0
     with pytest.raises(ValueError, match="final_label_trim"):
         TrainConfig(final_label_trim="loose")
