@@ -374,7 +374,7 @@ class Trainer:
         network and reshape the contacts toward whatever it accepts, so labels tight enough to
         need exact contacts pull the fields with them (recall falls); once the fields are final
         nothing moves, and tight labels only shrink the set toward the region where the contacts
-        are exact (the oracle's; ``auto`` keeps the rounds' trim on SfM's: :func:`resolve_final_label_trim`)."""
+        are exact (the oracle's 0.2%; ``auto`` trims 0.3% on SfM's: :func:`resolve_final_label_trim`)."""
         final = phase.round == self.cfg.rounds + 1
         return resolve_final_label_trim(self.cfg.final_label_trim, self.source) if final else self.cfg.label_trim
 
