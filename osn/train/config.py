@@ -289,8 +289,9 @@ def anchor_plane_size(fcfg: FieldConfig, inputs: SceneInputs) -> int:
     0 when the anchor has no sparse depth; there best of 1000 gained 0.5 dB on each of three seeds
     (the search of 2026-11-27). Off on the oracle's inputs, where it is not measured with the
     objects' fields they keep. On gnome-house at 128 px (397 texels) the valid set lost 0.015 IoU
-    on average over three seeds with all three options and training took 1.3x as long; one seed
-    points at the planes (docs/training.md)."""
+    on average over three seeds with all three options (the final trim of then, 1%; at today's 0.3%
+    their final labels lose 0.008) and training took 1.3x as long; one seed points at the planes
+    (docs/training.md)."""
     if fcfg.kind != "dense" or fcfg.anchor_planes == 0 or (fcfg.anchor_planes == "auto" and inputs.source == "oracle"):
         return 0
     if fcfg.anchor_planes != "auto":
