@@ -107,9 +107,10 @@ def main() -> None:
 def sweep_trims(tr: Trainer, region, trims: list[float], points: int) -> None:
     """The pool's labelled set at each trim, on ``osn evaluate``'s stratified points."""
     st, cons = tr.st, tr.cache["constraints"]
-    pts = set_samples(region, dataset_box(st.inputs, st.ranges.cpu().numpy(), region.num_objects), points, 0)
-    pv = [cons.pair_violations(full_sbar(torch.from_numpy(free_normalised(st.inputs, st.ranges.cpu().numpy(), x)).float(), st.ranges, st.anchor))
-          for x in pts.strata]
+    ranges = st.ranges.cpu().numpy()
+    pts = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), points, 0)
+    free = [torch.from_numpy(free_normalised(st.inputs, ranges, x)).float() for x in pts.strata]
+    pv = [cons.pair_violations(full_sbar(s, st.ranges, st.anchor)) for s in free]
     names = {o.id: o.name for o in st.inputs.objects}
     # One noise floor for all points (the fewest violations among them), as a scale step takes it
     # among its samples.
@@ -120,8 +121,10 @@ def sweep_trims(tr: Trainer, region, trims: list[float], points: int) -> None:
         lab = [(v <= allow[None]).all(1).numpy() for v in pv]
         acc = set_accuracy(pts, *lab)
         worst = sorted(limiting_bounds(region, pts, *lab), key=lambda e: -(e["missed"] + e["excess"]))[:3]
-        bounds = ", ".join(f"{names.get(e['i'])} < {names.get(e['j'])} missed {e['missed']:.3f} excess {e['excess']:.3f}" for e in worst)
-        print(f"trim {trim:g}: labelled set IoU {acc['iou']:.3f} precision {acc['precision']:.3f} recall {acc['recall']:.3f}; {bounds}", flush=True)
+        bounds = ", ".join(f"{names.get(e['i'])} < {names.get(e['j'])} missed {e['missed']:.3f} excess {e['excess']:.3f}"
+                           for e in worst)
+        print(f"trim {trim:g}: labelled set IoU {acc['iou']:.3f} precision {acc['precision']:.3f} "
+              f"recall {acc['recall']:.3f}; {bounds}", flush=True)
 
 
 if __name__ == "__main__":

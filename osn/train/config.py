@@ -103,10 +103,11 @@ def resolve_final_label_trim(value: float | str, source: str) -> float:
     (looser cost the demo's valid set: 0.888 -> 0.771 at 0.01) and :data:`FINAL_LABEL_TRIM_SFM` on
     anything else, where a few contact rays of each pair are off and the oracle's trim cuts into
     the region. It was the rounds' 0.01, chosen on the fields of 2026-11-27 (before per-object
-    grids, the room's planes and guided samples): on eleven SfM runs of the demo and gnome-house at 128 px (2026-11-28)
-    the final fields' labels at 0.01 reached 4-11% of the region's volume past the objects' bounds
-    against the room (the labelled set's IoU 0.870 on average, lowest 0.834); at 0.003 0.923, lowest
-    0.892 (docs/training.md, "The final phase's trim on SfM inputs, measured again")."""
+    grids, the room's planes and guided samples). On eleven SfM runs of the demo and gnome-house
+    at 128 px (2026-11-28) the final fields' labels at 0.01 reached 4-11% of the region's volume
+    past the objects' bounds against the room (the labelled set's IoU 0.870 on average, lowest
+    0.834); at 0.003 0.923, lowest 0.892 (docs/training.md, "The final phase's trim on SfM inputs,
+    measured again")."""
     return by_source(value, source, FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM)
 
 
