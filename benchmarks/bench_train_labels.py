@@ -110,15 +110,11 @@ def sweep_trims(tr: Trainer, region, trims: list[float], points: int) -> None:
     ranges = st.ranges.cpu().numpy()
     pts = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), points, 0)
     free = [torch.from_numpy(free_normalised(st.inputs, ranges, x)).float() for x in pts.strata]
-    pv = [cons.pair_violations(full_sbar(s, st.ranges, st.anchor)) for s in free]
+    pv = cons.pair_violations(full_sbar(torch.cat(free), st.ranges, st.anchor))
     names = {o.id: o.name for o in st.inputs.objects}
-    # One noise floor for all points (the fewest violations among them), as a scale step takes it
-    # among its samples.
-    every = torch.cat(pv)
-    floor = every[every.sum(1).argmin()]
     for trim in trims:
-        allow = floor + torch.floor(trim * cons.sizes())
-        lab = [(v <= allow[None]).all(1).numpy() for v in pv]
+        # One noise floor for all points of every stratum, as a scale step takes it among its samples.
+        lab = np.split(trimmed_labels(pv, cons.sizes(), trim).bool().numpy(), 3)
         acc = set_accuracy(pts, *lab)
         worst = sorted(limiting_bounds(region, pts, *lab), key=lambda e: -(e["missed"] + e["excess"]))[:3]
         bounds = ", ".join(f"{names.get(e['i'])} < {names.get(e['j'])} missed {e['missed']:.3f} excess {e['excess']:.3f}"

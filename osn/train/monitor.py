@@ -34,6 +34,7 @@ class TrainingMonitor:
         points: with ``region``, ``iou_samples`` fixed points uniform in the sampling box, as
             many in the exact region's interval box and as many near it (:class:`scenecore.validity.SetSamples`).
         s_mc: their free normalised scales, three ``(M, K-1)`` float64 (uniform, inner, near).
+        exact_all: with ``region``, the points of every stratum that lie in the region ``(E, K)``.
     """
 
     def __init__(self, trainer: Trainer, region: ValidRegion | None) -> None:
@@ -45,7 +46,6 @@ class TrainingMonitor:
         n = min(cfg.eval_pixels, len(pool))
         self.flat = pool[torch.randperm(len(pool), generator=g)[:n].to(st.device)]
         self.region = None
-        self.exact_all: np.ndarray | None = None
         # Scales need only the units; test cameras (world_to_anchor) are evaluation's concern.
         problem = ground_truth_problem(st.inputs, test_views=False) if region is not None else None
         if problem:
@@ -56,6 +56,8 @@ class TrainingMonitor:
             # Stratified points: a region of 1e-6 of the box (8 objects) has none among uniform ones.
             self.points = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), cfg.iou_samples, seed=12345)
             self.s_mc = [torch.from_numpy(free_normalised(st.inputs, ranges, x)) for x in self.points.strata]
+            # The region's points of every stratum, for the interval error (the points are fixed).
+            self.exact_all = np.concatenate([x[np.asarray(region.contains(x), bool)] for x in self.points.strata])
             if not self.points.exact.any():
                 log.warning("valid-set accuracy: none of %d points in the exact region's interval box is valid; "
                             "recall and IoU are not measured (NaN)", cfg.iou_samples)
@@ -96,8 +98,6 @@ class TrainingMonitor:
         the sampled box) against the exact region's, both read off the same points (all three
         strata; ``learned``: membership per stratum); 1.0 when either set is empty."""
         strata = self.points.strata
-        if self.exact_all is None:  # the region's points of every stratum, found once
-            self.exact_all = np.concatenate([x[np.asarray(self.region.contains(x), bool)] for x in strata])
         learned = np.concatenate([x[m] for x, m in zip(strata, learned)])
         exact = self.exact_all
         if not len(learned) or not len(exact):
