@@ -52,6 +52,7 @@ class TrainedRun:
     device: torch.device
     iteration: int
     train_seconds: float
+    anchor_guide_samples: int = 0  # the anchor's guide samples its training used (0: even)
 
     @property
     def anchor_pos(self) -> int:
@@ -93,12 +94,6 @@ class TrainedRun:
         keep = [k for k in (objects if objects is not None else range(inp.num_objects)) if k in T]
         _, d = pixel_rays(inp.K, np.eye(4), inp.width, inp.height)
         return torch.from_numpy(d).float().to(self.device), {k: torch.from_numpy(T[k]).float().to(self.device) for k in keep}
-
-    @property
-    def anchor_guide_samples(self) -> int:
-        """The anchor's guide samples its training used (0: even; a run older than the option: 0)."""
-        from osn.train.config import resolve_anchor_guide_samples  # osn.train imports this module
-        return resolve_anchor_guide_samples(self.config.get("anchor_guide_samples", 0), self.inputs.source)
 
     def _object_rays(self, k: int, pose: torch.Tensor, R: int) -> ObjectRays:
         wide = torch.tensor([1e-6, 1e9], device=self.device)  # novel views: the box alone bounds t
@@ -220,4 +215,7 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"{ckpt_path}: does not match this toolkit's fields or scale network ({first})") from None
-    return TrainedRun(run, inputs, cfg, fields, net, dev, int(ckpt.get("iteration", 0)), float(ckpt.get("elapsed", 0.0)))
+    from osn.train.config import legacy_anchor_guide_samples  # osn.train imports this module
+    guide = ckpt.get("anchor_guide", legacy_anchor_guide_samples(cfg.get("anchor_guide_samples", 0), inputs.source))
+    return TrainedRun(run, inputs, cfg, fields, net, dev, int(ckpt.get("iteration", 0)), float(ckpt.get("elapsed", 0.0)),
+                      int(guide))

@@ -111,19 +111,30 @@ def resolve_final_label_trim(value: float | str, source: str) -> float:
     return by_source(value, source, FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM)
 
 
-#: ``anchor_guide_samples: auto`` on inputs other than the oracle's: the guide pass's density samples
-#: along each of the anchor's rays (:func:`osn.model.volume.guided_positions`).
-ANCHOR_GUIDE_SFM = 64
+#: ``anchor_guide_samples: auto``: the guide pass's density samples along each of the anchor's
+#: rays (:func:`osn.model.volume.guided_positions`) where its grid under-resolves what it sees.
+ANCHOR_GUIDE_SAMPLES = 64
 
 
-def resolve_anchor_guide_samples(value: int | str, source: str) -> int:
-    """The anchor's guide samples for inputs from ``source`` (0: even samples): ``auto`` is
-    :data:`ANCHOR_GUIDE_SFM` on SfM inputs, where the room's samples found its surfaces and the demo
-    gained best of 1000 +0.29 dB, the margin over the highest score +0.20 dB and the valid set
-    +0.019 IoU over three seeds at no measurable cost, and off on the oracle's, where it is not
-    measured on the demo and the tiny scene's valid set lost recall (docs/training.md, "Where the
-    room's test pixels go wrong")."""
-    return int(by_source(value, source, 0, ANCHOR_GUIDE_SFM))
+def resolve_anchor_guide_samples(value: int | str, fcfg: FieldConfig, inputs: SceneInputs) -> int:
+    """The anchor's guide samples (0: even samples): ``auto`` is :data:`ANCHOR_GUIDE_SAMPLES`
+    unless the anchor's box spans no more pixels than its grid has voxels (:func:`anchor_pixels`;
+    without sparse depths it is on). On the SfM demo the room's samples found its surfaces:
+    best of 1000 +0.29 dB, the margin over the highest score +0.20 dB and the valid set +0.019 IoU
+    over three seeds at no measurable cost; on the oracle's inputs, with the room's colour planes,
+    the demo's valid set 0.866 -> 0.899 and gnome-house's at 128 px 0.912 -> 0.930. On the tiny test
+    scene (its room 52 px across at 32 px, under its 64 voxels) it cost recall: 0.90 -> 0.75
+    (docs/training.md, "The room's options on the oracle's inputs")."""
+    if value != "auto":
+        return int(value)
+    n = anchor_pixels(inputs)
+    return 0 if n is not None and n <= fcfg.resolution else ANCHOR_GUIDE_SAMPLES
+
+
+def legacy_anchor_guide_samples(value: int | str, source: str) -> int:
+    """The guide samples a run trained with when its checkpoint does not say (written before
+    2026-11-28, late): ``auto`` was :data:`ANCHOR_GUIDE_SAMPLES` on SfM inputs, 0 on the oracle's."""
+    return int(by_source(value, source, 0, ANCHOR_GUIDE_SAMPLES))
 
 
 def resolve_depth_robust(value: float | str, source: str) -> float:
@@ -282,29 +293,39 @@ def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs) -> list[list[int]
 MIN_ANCHOR_PLANES, MAX_ANCHOR_PLANES = 16, 1024
 
 
-def anchor_plane_size(fcfg: FieldConfig, inputs: SceneInputs) -> int:
-    """Texels per side of the anchor's colour planes (0: none; dense fields only). ``auto`` on SfM
-    inputs (or a user's video): about one texel per pixel where the anchor's surfaces are, the
-    longest side of its box over the pixel footprint at the median of its sparse depths (depth /
-    focal length), within [:data:`MIN_ANCHOR_PLANES`, :data:`MAX_ANCHOR_PLANES`] (the demo: 255),
-    0 when the anchor has no sparse depth; there best of 1000 gained 0.5 dB on each of three seeds
-    (the search of 2026-11-27). Off on the oracle's inputs, where it is not measured with the
-    objects' fields they keep. On gnome-house at 128 px (397 texels) the valid set lost 0.015 IoU
-    on average over three seeds with all three options (the final trim of then, 1%; at today's 0.3%
-    their final labels lose 0.008) and training took 1.3x as long; one seed points at the planes
-    (docs/training.md)."""
-    if fcfg.kind != "dense" or fcfg.anchor_planes == 0 or (fcfg.anchor_planes == "auto" and inputs.source == "oracle"):
-        return 0
-    if fcfg.anchor_planes != "auto":
-        return int(fcfg.anchor_planes)
+def anchor_pixels(inputs: SceneInputs) -> float | None:
+    """How many pixels the anchor's box spans: the longest side of its box over the pixel
+    footprint at the median of its sparse depths (depth / focal length; both in the anchor's unit,
+    so the figure does not depend on it). None when the anchor has no sparse depth."""
     a = inputs.objects[inputs.anchor_pos]
     depths = np.concatenate([np.asarray(d, dtype=np.float64).reshape(-1) for d in a.sparse_depth] + [np.zeros(0)])
     depths = depths[np.isfinite(depths) & (depths > 0)]
     if not len(depths):
-        return 0
+        return None
     footprint = float(np.median(depths)) / float(inputs.K[0, 0])
-    side = float(np.max(np.asarray(a.bbox[1]) - np.asarray(a.bbox[0])))
-    return int(np.clip(round(side / footprint), MIN_ANCHOR_PLANES, MAX_ANCHOR_PLANES))
+    return float(np.max(np.asarray(a.bbox[1]) - np.asarray(a.bbox[0]))) / footprint
+
+
+def anchor_plane_size(fcfg: FieldConfig, inputs: SceneInputs) -> int:
+    """Texels per side of the anchor's colour planes (0: none; dense fields only). ``auto``: about
+    one texel per pixel where the anchor's surfaces are (:func:`anchor_pixels`), within
+    [:data:`MIN_ANCHOR_PLANES`, :data:`MAX_ANCHOR_PLANES`]; 0 where that is no more than the
+    anchor's grid resolution (the grid holds as much) or the anchor has no sparse depth. The SfM
+    demo: 255 texels; there best of 1000 gained 0.5 dB on each of three seeds (the search of
+    2026-11-27). The oracle's demo: 105, gnome-house at 128 px 213 (with the guide: the valid set
+    +0.033 / +0.018 IoU over three seeds); the tiny test scene: 52, none (its best of 60 lost 0.5 dB
+    with them). On gnome-house at 128 px from SfM (397 texels) the valid set lost 0.015 IoU on
+    average over three seeds with all three options (the final trim of then, 1%; at today's 0.3%
+    their final labels lose 0.008) and training took 1.3x as long; one seed points at the planes
+    (docs/training.md)."""
+    if fcfg.kind != "dense" or fcfg.anchor_planes == 0:
+        return 0
+    if fcfg.anchor_planes != "auto":
+        return int(fcfg.anchor_planes)
+    n = anchor_pixels(inputs)
+    if n is None or n <= fcfg.resolution:
+        return 0
+    return int(np.clip(round(n), MIN_ANCHOR_PLANES, MAX_ANCHOR_PLANES))
 
 
 #: ``label_stride: 0`` keeps about this many pool pixels per frame side: the per-object depth

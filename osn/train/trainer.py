@@ -23,8 +23,8 @@ from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import (TrainConfig, anchor_plane_size, object_resolutions, resolve_anchor_guide_samples,
-                              resolve_depth_robust, resolve_final_label_trim, resolve_w_edge)
+from osn.train.config import (TrainConfig, anchor_plane_size, legacy_anchor_guide_samples, object_resolutions,
+                              resolve_anchor_guide_samples, resolve_depth_robust, resolve_final_label_trim, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
@@ -79,7 +79,7 @@ class Trainer:
 
     def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
         self.cfg, self.device = cfg, device
-        self.st = SceneTensors(inputs, device, resolve_anchor_guide_samples(cfg.anchor_guide_samples, inputs.source))
+        self.st = SceneTensors(inputs, device, resolve_anchor_guide_samples(cfg.anchor_guide_samples, cfg.field, inputs))
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
         self.source = inputs.source
@@ -133,6 +133,7 @@ class Trainer:
             "positives": self.positives,
             "loss_acc": self.loss_acc,
             "resolutions": [f.resolution for f in self.fields],
+            "anchor_guide": self.st.guide,  # resolved: what `auto` gives may change, what trained may not
             "fields": [f.state_dict() for f in self.fields],
             "field_opt": self.field_opt.state_dict(),
             "net": self.net.state_dict() if self.net is not None else None,
@@ -158,6 +159,8 @@ class Trainer:
         if self.net is not None:
             self.net.load_state_dict(s["net"])
             self.net_opt.load_state_dict(s["net_opt"])
+        self.st.guide = int(s.get("anchor_guide", legacy_anchor_guide_samples(s["config"].get("anchor_guide_samples", 0),
+                                                                             self.source)))
         self.gen.set_state(s["gen"].cpu())
         torch.set_rng_state(s["torch_rng"].cpu())
 

@@ -268,19 +268,34 @@ def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tm
     f = min(D.load_scene(tiny_dataset).train_frames, key=lambda fr: fr.time_index)
     guided = run.render_view(None, f.time_index, np.ones(inputs.num_objects))
     assert np.isfinite(guided["rgb"]).all() and np.isfinite(guided["acc"]).all()
-    del run.config["anchor_guide_samples"]  # as a run trained before the option
-    assert [run._object_rays(k, pose, 3).guide for k in range(inputs.num_objects)] == [0] * inputs.num_objects
-    assert not np.array_equal(run.render_view(None, f.time_index, np.ones(inputs.num_objects))["rgb"], guided["rgb"])
-    # ``auto`` (the default): guided on SfM inputs, even on the oracle's, in training and in the run's renders.
-    from osn.train.config import ANCHOR_GUIDE_SFM, resolve_anchor_guide_samples
-    assert _cfg().anchor_guide_samples == "auto"
-    assert resolve_anchor_guide_samples("auto", "colmap") == ANCHOR_GUIDE_SFM > 0
-    assert resolve_anchor_guide_samples("auto", "oracle") == 0 and resolve_anchor_guide_samples(8, "oracle") == 8
-    run.config["anchor_guide_samples"] = "auto"
-    assert run.anchor_guide_samples == 0
-    run.inputs.source = "colmap"
-    assert run.anchor_guide_samples == ANCHOR_GUIDE_SFM
-    assert Trainer(dataclasses.replace(inputs, source="colmap"), _cfg(), torch.device("cpu")).st.guide == ANCHOR_GUIDE_SFM
+    # A checkpoint written before the resolved value was stored: ``auto`` as it was then (0 on the
+    # oracle's inputs), and a run trained before the option: even.
+    from osn.train.config import ANCHOR_GUIDE_SAMPLES, legacy_anchor_guide_samples, resolve_anchor_guide_samples
+    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    assert ckpt["anchor_guide"] == 16
+    del ckpt["anchor_guide"]
+    for config, guide in (({"anchor_guide_samples": "auto"}, 0), ({}, 0), ({"anchor_guide_samples": 8}, 8)):
+        ckpt["config"] = {k: v for k, v in ckpt["config"].items() if k != "anchor_guide_samples"} | config
+        torch.save(ckpt, tmp_path / "r" / "checkpoint.pt")
+        old = load_run(tmp_path / "r")
+        assert [old._object_rays(k, pose, 3).guide for k in range(inputs.num_objects)] == \
+            [guide if k == run.anchor_pos else 0 for k in range(inputs.num_objects)]
+    assert not np.array_equal(old.render_view(None, f.time_index, np.ones(inputs.num_objects))["rgb"], guided["rgb"])
+    assert legacy_anchor_guide_samples("auto", "colmap") == ANCHOR_GUIDE_SAMPLES > 0
+    # ``auto`` (the default): guided wherever the anchor's box spans more pixels than its grid has
+    # voxels, whatever the inputs' source: the tiny scene's room (about 50 px across) at the CPU
+    # config's 64^3 is even, at these tests' 24^3 guided; a number is itself.
+    from osn.train import TrainConfig
+    assert TrainConfig().anchor_guide_samples == "auto"
+    small = dataclasses.replace(_cfg().field, anchor_planes="auto")
+    cpu = dataclasses.replace(small, resolution=64)
+    for source in ("oracle", "colmap"):
+        src = dataclasses.replace(inputs, source=source)
+        assert resolve_anchor_guide_samples("auto", cpu, src) == 0
+        assert resolve_anchor_guide_samples("auto", small, src) == ANCHOR_GUIDE_SAMPLES
+        assert resolve_anchor_guide_samples(8, cpu, src) == 8
+    assert Trainer(inputs, _cfg(anchor_guide_samples="auto", field=small), torch.device("cpu")).st.guide == ANCHOR_GUIDE_SAMPLES
+    assert Trainer(inputs, _cfg(anchor_guide_samples="auto", field=cpu), torch.device("cpu")).st.guide == 0
 
 
 def test_scale_phase_samples_near_earlier_valid_vectors_and_resumes_them(tiny_dataset: Path) -> None:
@@ -461,7 +476,7 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     with 0, every object stays at ``resolution`` (as before the option)."""
     from osn.model.fields import FieldConfig
     from osn.model.run import load_run
-    from osn.train.config import MIN_ANCHOR_PLANES, anchor_plane_size, object_resolutions
+    from osn.train.config import MIN_ANCHOR_PLANES, anchor_pixels, anchor_plane_size, object_resolutions
     from osn.train.loop import train
 
     oracle = oracle_inputs(tiny_dataset)
@@ -484,7 +499,11 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     assert anchor_plane_size(dataclasses.replace(fcfg, anchor_planes=0), inputs) == 0
     assert anchor_plane_size(dataclasses.replace(fcfg, anchor_planes=40), inputs) == 40
     assert anchor_plane_size(dataclasses.replace(fcfg, kind="tensorf"), inputs) == 0
-    assert anchor_plane_size(fcfg, oracle) == 0 and anchor_plane_size(dataclasses.replace(fcfg, anchor_planes=40), oracle) == 40
+    assert anchor_plane_size(fcfg, oracle) == P  # the same rule on the oracle's inputs
+    # None where the grid holds as much: the box spans no more pixels than the grid has voxels.
+    n = anchor_pixels(inputs)
+    assert P == round(n) and anchor_plane_size(dataclasses.replace(fcfg, resolution=int(np.ceil(n))), inputs) == 0
+    assert anchor_plane_size(dataclasses.replace(fcfg, resolution=int(np.floor(n))), inputs) == P
 
     def anchor_as(**kw) -> "SceneInputs":
         objects = list(inputs.objects)
