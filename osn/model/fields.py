@@ -403,6 +403,12 @@ class FieldConfig:
         return [max(2, int(round(r * final / self.resolution))) for r in steps]
 
 
+def saved_plane_size(state: dict[str, Any]) -> int:
+    """Texels per side of the colour planes a field's ``state_dict`` holds (0: none), so a
+    checkpoint's field is rebuilt as it trained whatever ``anchor_planes: auto`` gives today."""
+    return int(round((state["planes"].shape[0] / 3) ** 0.5)) if "planes" in state else 0
+
+
 def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: int | None = None,
                planes: int = 0) -> Field:
     """Build the configured field for one object's box ``bbox (2, 3)`` (at ``resolution`` or the

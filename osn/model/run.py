@@ -9,7 +9,6 @@ placed through :mod:`osn.placement`. All scale vectors are indexed by object *po
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import torch
 
 from scenecore import dataset as D
 from scenecore.cameras import pixel_rays
-from osn.model.fields import Field, FieldConfig, make_field
+from osn.model.fields import Field, FieldConfig, make_field, saved_plane_size
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
@@ -203,8 +202,7 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
         fcfg = FieldConfig(**cfg["field"])
         fields = []
         for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
-            planes = int(round(math.sqrt(sd["planes"].shape[0] / 3))) if "planes" in sd else 0  # the anchor's
-            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r, planes=planes)
+            f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r, planes=saved_plane_size(sd))
             f.load_state_dict(sd)
             fields.append(f.to(dev).eval())
         net = None

@@ -122,9 +122,10 @@ def resolve_anchor_guide_samples(value: int | str, fcfg: FieldConfig, inputs: Sc
     without sparse depths it is on). On the SfM demo the room's samples found its surfaces:
     best of 1000 +0.29 dB, the margin over the highest score +0.20 dB and the valid set +0.019 IoU
     over three seeds at no measurable cost; on the oracle's inputs, with the room's colour planes,
-    the demo's valid set 0.866 -> 0.899 and gnome-house's at 128 px 0.912 -> 0.930. On the tiny test
-    scene (its room 52 px across at 32 px, under its 64 voxels) it cost recall: 0.90 -> 0.75
-    (docs/training.md, "The room's options on the oracle's inputs")."""
+    the demo's valid set 0.862 +- 0.042 -> 0.893 +- 0.009 over five seeds and gnome-house's at
+    128 px 0.912 -> 0.930 over three. On the tiny test scene (its room 52 px across at 32 px, under
+    its 64 voxels) it cost recall: 0.90 -> 0.75 (docs/training.md, "One rule for the room's options
+    on every input")."""
     if value != "auto":
         return int(value)
     n = anchor_pixels(inputs)
@@ -313,8 +314,8 @@ def anchor_plane_size(fcfg: FieldConfig, inputs: SceneInputs) -> int:
     anchor's grid resolution (the grid holds as much) or the anchor has no sparse depth. The SfM
     demo: 255 texels; there best of 1000 gained 0.5 dB on each of three seeds (the search of
     2026-11-27). The oracle's demo: 105, gnome-house at 128 px 213 (with the guide: the valid set
-    +0.033 / +0.018 IoU over three seeds); the tiny test scene: 52, none (its best of 60 lost 0.5 dB
-    with them). On gnome-house at 128 px from SfM (397 texels) the valid set lost 0.015 IoU on
+    +0.031 IoU over five seeds / +0.018 over three); the tiny test scene: 52, none (its best of 60
+    lost 0.5 dB with them). On gnome-house at 128 px from SfM (397 texels) the valid set lost 0.015 IoU on
     average over three seeds with all three options (the final trim of then, 1%; at today's 0.3%
     their final labels lose 0.008) and training took 1.3x as long; one seed points at the planes
     (docs/training.md)."""

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from osn.model.fields import make_field
+from osn.model.fields import make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
@@ -151,9 +151,13 @@ class Trainer:
         # device the checkpoint was read onto.
         self.positives = s.get("positives", self.positives).cpu()  # version 1: resumes with an empty buffer
         self.loss_acc = {k: list(v) for k, v in s["loss_acc"].items()}
-        for f, r, sd in zip(self.fields, s["resolutions"], s["fields"]):
-            f.set_resolution(r)
-            f.load_state_dict(sd)
+        for k, (r, sd) in enumerate(zip(s["resolutions"], s["fields"])):
+            planes = saved_plane_size(sd)
+            if getattr(self.fields[k], "plane_size", 0) != planes:  # trained when `auto` gave another size
+                bbox = torch.from_numpy(self.st.inputs.objects[k].bbox).float()
+                self.fields[k] = make_field(self.cfg.field, bbox, seed=self.cfg.seed + k, resolution=r, planes=planes).to(self.device)
+            self.fields[k].set_resolution(r)
+            self.fields[k].load_state_dict(sd)
         self._make_field_opt()
         self.field_opt.load_state_dict(s["field_opt"])
         if self.net is not None:

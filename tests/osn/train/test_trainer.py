@@ -524,6 +524,19 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     old = load_run(tmp_path / "r")
     t0 = int(inputs.objects[a].frames[0])
     assert old.fields[a].planes is None and np.isfinite(old.render_view(None, t0, np.ones(inputs.num_objects))["rgb"]).all()
+    # Resuming one (``auto`` gave it no planes then; today it gives P): the trainer rebuilds the
+    # anchor's field as its checkpoint holds it, and its guide as it trained (no ``anchor_guide``
+    # in the checkpoint: ``auto`` was even on the oracle's inputs).
+    cfg = _cfg(field=dataclasses.replace(fcfg, anchor_planes=0), anchor_guide_samples=0)
+    train(tmp_path / "p0", cfg, inputs=oracle, progress=False)
+    ckpt = torch.load(tmp_path / "p0" / "checkpoint.pt", weights_only=False)
+    del ckpt["anchor_guide"]
+    resumed = Trainer(oracle, _cfg(field=fcfg, anchor_guide_samples="auto"), torch.device("cpu"))
+    assert resumed.fields[a].planes is not None and resumed.st.guide > 0  # what ``auto`` gives today
+    resumed.load_state_dict(ckpt)
+    assert resumed.fields[a].planes is None and resumed.st.guide == 0
+    resumed.step_fields()  # trains on as it trained
+    assert resumed.non_finite_parameters() == []
     same = dataclasses.replace(fcfg, object_resolution=0)
     assert object_resolutions(same, inputs) == [[16, 24]] * inputs.num_objects
     assert object_resolutions(dataclasses.replace(fcfg, object_resolution=20), inputs) == \
