@@ -132,10 +132,13 @@ def resolve_anchor_guide_samples(value: int | str, fcfg: FieldConfig, inputs: Sc
     return 0 if n is not None and n <= fcfg.resolution else ANCHOR_GUIDE_SAMPLES
 
 
-def legacy_anchor_guide_samples(value: int | str, source: str) -> int:
-    """The guide samples a run trained with when its checkpoint does not say (written before
-    2026-11-28, late): ``auto`` was :data:`ANCHOR_GUIDE_SAMPLES` on SfM inputs, 0 on the oracle's."""
-    return int(by_source(value, source, 0, ANCHOR_GUIDE_SAMPLES))
+def checkpoint_anchor_guide_samples(ckpt: dict[str, Any], source: str) -> int:
+    """The anchor's guide samples a checkpoint's training used (its ``anchor_guide``). One written
+    before 2026-11-28 (late) does not say: its config's ``auto`` then meant
+    :data:`ANCHOR_GUIDE_SAMPLES` on SfM inputs and 0 on the oracle's (no key: before the option, 0)."""
+    if "anchor_guide" in ckpt:
+        return int(ckpt["anchor_guide"])
+    return int(by_source(ckpt["config"].get("anchor_guide_samples", 0), source, 0, ANCHOR_GUIDE_SAMPLES))
 
 
 def resolve_depth_robust(value: float | str, source: str) -> float:

@@ -17,13 +17,13 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from osn.model.fields import make_field, saved_plane_size
+from osn.model.fields import Field, make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import (TrainConfig, anchor_plane_size, legacy_anchor_guide_samples, object_resolutions,
+from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
                               resolve_anchor_guide_samples, resolve_depth_robust, resolve_final_label_trim, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.schedule import Phase, build_schedule
@@ -91,8 +91,8 @@ class Trainer:
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.resolutions = object_resolutions(cfg.field, inputs)  # per object position its grid's schedule
         planes = anchor_plane_size(cfg.field, inputs)
-        self.fields = [make_field(cfg.field, torch.from_numpy(o.bbox).float(), seed=cfg.seed + k, resolution=self.resolutions[k][0],
-                                  planes=planes if k == inputs.anchor_pos else 0).to(device) for k, o in enumerate(inputs.objects)]
+        self.fields = [self._make_object_field(k, self.resolutions[k][0], planes if k == inputs.anchor_pos else 0)
+                       for k in range(len(inputs.objects))]
         self.net = ScaleNet(K - 1, cfg.scale_width, cfg.scale_layers, seed=cfg.seed).to(device) if K > 1 else None
         self.net_opt = torch.optim.Adam(self.net.parameters(), lr=cfg.scale_lr) if self.net is not None else None
         self.schedule = build_schedule(cfg, K)
@@ -116,6 +116,11 @@ class Trainer:
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
+
+    def _make_object_field(self, k: int, resolution: int, planes: int) -> Field:
+        """Object position ``k``'s field, on its box, at ``resolution`` with ``planes`` texels."""
+        bbox = torch.from_numpy(self.st.inputs.objects[k].bbox).float()
+        return make_field(self.cfg.field, bbox, seed=self.cfg.seed + k, resolution=resolution, planes=planes).to(self.device)
 
     def _make_field_opt(self) -> None:
         groups = [g for f in self.fields for g in f.param_groups(self.cfg.field.lr_grid, self.cfg.field.lr_net)]
@@ -154,8 +159,7 @@ class Trainer:
         for k, (r, sd) in enumerate(zip(s["resolutions"], s["fields"])):
             planes = saved_plane_size(sd)
             if getattr(self.fields[k], "plane_size", 0) != planes:  # trained when `auto` gave another size
-                bbox = torch.from_numpy(self.st.inputs.objects[k].bbox).float()
-                self.fields[k] = make_field(self.cfg.field, bbox, seed=self.cfg.seed + k, resolution=r, planes=planes).to(self.device)
+                self.fields[k] = self._make_object_field(k, r, planes)
             self.fields[k].set_resolution(r)
             self.fields[k].load_state_dict(sd)
         self._make_field_opt()
@@ -163,8 +167,7 @@ class Trainer:
         if self.net is not None:
             self.net.load_state_dict(s["net"])
             self.net_opt.load_state_dict(s["net_opt"])
-        self.st.guide = int(s.get("anchor_guide", legacy_anchor_guide_samples(s["config"].get("anchor_guide_samples", 0),
-                                                                             self.source)))
+        self.st.guide = checkpoint_anchor_guide_samples(s, self.source)
         self.gen.set_state(s["gen"].cpu())
         torch.set_rng_state(s["torch_rng"].cpu())
 

@@ -270,7 +270,7 @@ def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tm
     assert np.isfinite(guided["rgb"]).all() and np.isfinite(guided["acc"]).all()
     # A checkpoint written before the resolved value was stored: ``auto`` as it was then (0 on the
     # oracle's inputs), and a run trained before the option: even.
-    from osn.train.config import ANCHOR_GUIDE_SAMPLES, legacy_anchor_guide_samples, resolve_anchor_guide_samples
+    from osn.train.config import ANCHOR_GUIDE_SAMPLES, checkpoint_anchor_guide_samples, resolve_anchor_guide_samples
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
     assert ckpt["anchor_guide"] == 16
     del ckpt["anchor_guide"]
@@ -281,7 +281,8 @@ def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tm
         assert [old._object_rays(k, pose, 3).guide for k in range(inputs.num_objects)] == \
             [guide if k == run.anchor_pos else 0 for k in range(inputs.num_objects)]
     assert not np.array_equal(old.render_view(None, f.time_index, np.ones(inputs.num_objects))["rgb"], guided["rgb"])
-    assert legacy_anchor_guide_samples("auto", "colmap") == ANCHOR_GUIDE_SAMPLES > 0
+    assert checkpoint_anchor_guide_samples({"config": {"anchor_guide_samples": "auto"}}, "colmap") == ANCHOR_GUIDE_SAMPLES > 0
+    assert checkpoint_anchor_guide_samples({"anchor_guide": 0, "config": {"anchor_guide_samples": "auto"}}, "colmap") == 0
     # ``auto`` (the default): guided wherever the anchor's box spans more pixels than its grid has
     # voxels, whatever the inputs' source: the tiny scene's room (about 50 px across) at the CPU
     # config's 64^3 is even, at these tests' 24^3 guided; a number is itself.
