@@ -17,6 +17,7 @@ Everything is float64 log-depth, so depth ratios over any finite range stay exac
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
@@ -106,6 +107,14 @@ def minority_pairs(counts: dict[tuple[int, int], int], minority: float) -> set[t
     if minority <= 0:
         return set()
     return {(i, j) for (i, j), n in counts.items() if n < minority * counts.get((j, i), 0)}
+
+
+def in_front_pairs(pairs: Iterable[tuple[int, int]]) -> frozenset[tuple[int, int]]:
+    """The constrained pairs ``(i, j)`` ("``i`` in front of ``j``") whose opposite ``(j, i)`` is not
+    among them: wherever the two objects overlap, ``i`` is the one in front (the opposite had no
+    rays, or so few that :func:`minority_pairs` dropped them as a bleeding silhouette)."""
+    ps = set(pairs)
+    return frozenset((i, j) for i, j in ps if (j, i) not in ps)
 
 
 def trimmed_labels(pair_violations: torch.Tensor, sizes: torch.Tensor, trim: float) -> torch.Tensor:

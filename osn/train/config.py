@@ -43,7 +43,7 @@ _RULES: dict[str, Rule] = {
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
     # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
     "valid_threshold": number(0.0, 1.0, hi_open=True),
-    "free_space": choice("none", "anchor", "objects", "all"),
+    "free_space": choice("none", "anchor", "objects", "ordered", "all"),
 }
 
 

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from osn.model.fields import Field, make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.depth_order import OrderConstraints, order_constraints, trimmed_labels
+from osn.model.depth_order import OrderConstraints, in_front_pairs, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
@@ -111,6 +111,8 @@ class Trainer:
         self.positives = torch.zeros(0, max(K - 1, 1))
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
         self.bg = torch.tensor(cfg.background, device=device)
+        # (j, k): j in front of k by the last label pool; `free_space: ordered` stops carving k there
+        self.in_front: frozenset[tuple[int, int]] = frozenset()
         self.free = self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects)
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
         self._make_field_opt()
@@ -139,6 +141,7 @@ class Trainer:
             "loss_acc": self.loss_acc,
             "resolutions": [f.resolution for f in self.fields],
             "anchor_guide": self.st.guide,  # resolved: what `auto` gives may change, what trained may not
+            "in_front": sorted(self.in_front),
             "fields": [f.state_dict() for f in self.fields],
             "field_opt": self.field_opt.state_dict(),
             "net": self.net.state_dict() if self.net is not None else None,
@@ -168,6 +171,7 @@ class Trainer:
             self.net.load_state_dict(s["net"])
             self.net_opt.load_state_dict(s["net_opt"])
         self.st.guide = checkpoint_anchor_guide_samples(s, self.source)
+        self._set_in_front(frozenset(tuple(p) for p in s.get("in_front", [])))
         self.gen.set_state(s["gen"].cpu())
         torch.set_rng_state(s["torch_rng"].cpu())
 
@@ -334,10 +338,20 @@ class Trainer:
     # ---- stage 2: scale phase ------------------------------------------------------------
 
     def ensure_cache(self, phase: Phase) -> None:
-        """Build the label pool at the start of a scale phase (rebuilt identically on resume)."""
+        """Build the label pool at the start of a scale phase (rebuilt identically on resume);
+        with ``free_space: ordered`` its pairs' order then sets what the field phases carve."""
         if self.cache_key != phase.start:
             self.cache = build_label_pool(self.st, self.fields, self.cfg, phase.start)
             self.cache_key = phase.start
+            if self.cfg.free_space == "ordered":
+                self._set_in_front(in_front_pairs(self.cache["constraints"].pairs))
+
+    def _set_in_front(self, pairs: frozenset[tuple[int, int]]) -> None:
+        """Object pairs ``(j, k)`` with j in front of k; the free pixels follow them."""
+        if pairs != self.in_front:
+            self.in_front = pairs
+            cfg = self.cfg
+            self.free = self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects, pairs)
 
     def _constraints(self) -> OrderConstraints:
         """The scale phase's depth-order constraints: every contested pool ray, or a random
