@@ -113,7 +113,7 @@ class Trainer:
         self.bg = torch.tensor(cfg.background, device=device)
         # (j, k): j in front of k by the last label pool; `free_space: ordered` stops carving k there
         self.in_front: frozenset[tuple[int, int]] = frozenset()
-        self.free = self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects)
+        self.free = self._free_pixels()
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
         self._make_field_opt()
 
@@ -346,12 +346,16 @@ class Trainer:
             if self.cfg.free_space == "ordered":
                 self._set_in_front(in_front_pairs(self.cache["constraints"].pairs))
 
+    def _free_pixels(self) -> list[torch.Tensor]:
+        """Each object's free pixels under the config and the pairs' order known so far."""
+        cfg = self.cfg
+        return self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects, self.in_front)
+
     def _set_in_front(self, pairs: frozenset[tuple[int, int]]) -> None:
         """Object pairs ``(j, k)`` with j in front of k; the free pixels follow them."""
         if pairs != self.in_front:
             self.in_front = pairs
-            cfg = self.cfg
-            self.free = self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects, pairs)
+            self.free = self._free_pixels()
 
     def _constraints(self) -> OrderConstraints:
         """The scale phase's depth-order constraints: every contested pool ray, or a random
