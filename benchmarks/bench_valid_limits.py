@@ -35,7 +35,8 @@ def main() -> None:
     print_command()
     rows, pairs = [], []
     for run_dir in args.runs:
-        data = args.data or read_json(Path(run_dir) / "run.json").get("dataset")
+        meta = Path(run_dir) / "run.json"
+        data = args.data or (read_json(meta).get("dataset") if meta.exists() else None)
         region = dataset_region(data)
         if region is None:
             raise SystemExit(f"{run_dir}: no dataset with valid_region.json (give it with --data)")
