@@ -180,7 +180,7 @@ class TrainConfig:
     w_edge: float | str = "auto"  # resolved by resolve_w_edge
     edge_rays: int = 64
     edge_slope: float = 0.02
-    free_space: str = "objects"
+    free_space: str = "ordered"
     free_rays: int = 128
     free_band: int = 4
     free_band_objects: int = 1
