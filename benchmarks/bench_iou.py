@@ -18,10 +18,11 @@ mean and standard deviation over the seeds: one run's IoU moves by +-0.07 with t
   (``uncertain_acc: 0.05``), every object pair kept (``pair_minority: 0``), the final scale
   phase like the others (``final_label_trim: 0.01``, 300 steps);
 * ``after``: today's defaults (``free_space: ordered``, ``objects`` until 2026-11-28, with
-  ``free_band_objects: 1``, ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``, ``pair_minority: 0.2``, a final
-  scale phase of 2000 steps on labels trimmed by ``final_label_trim: 0.002``);
+  ``free_band_objects: 1``, ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``,
+  ``pair_minority: 0.2``, a final scale phase of 2000 steps on labels trimmed by
+  ``final_label_trim: auto``, 0.002 on the oracle's inputs);
 * ``loose-final``: ``after`` with the final scale phase like the others (``final_label_trim:
-  0.01``, 300 steps): the defaults of the morning of 2026-11-25;
+  0.01``, 300 steps): the defaults of the morning of 2026-11-25 but for today's other options;
 * ``tight-all``: ``loose-final`` with ``label_trim: 0.002`` in every scale phase;
 * ``no-minority``, ``no-objects``, ``no-alone``, ``uncertain``: ``after`` without one option.
 
