@@ -14,6 +14,7 @@ import io
 import numpy as np
 
 from scenecore.dataset import atomic_write_bytes, atomic_write_json, read_json
+from osn.train.environment import describe
 from benchgen.score.report import BY_OBJECT_NOTE, by_object_table
 from benchgen.score.scorer import METRICS
 from osn.evaluate.bestofn import TRUE_SCALES, EvalResult
@@ -46,6 +47,22 @@ def _inputs_line(run_dir: Path) -> str:
     if source == "colmap":
         return "Inputs: per-object SfM (pycolmap), as the method is published."
     return f"Inputs: {source}."
+
+
+def _environment_lines(run_dir: Path) -> list[str]:
+    """What the run trained with (``run.json``; none for runs trained before it was recorded)."""
+    try:
+        rec = read_json(Path(run_dir) / "run.json")
+    except (OSError, ValueError):
+        return []
+    env = rec.get("environment") if isinstance(rec, dict) else None
+    if not env:
+        return []
+    line = (f"Trained with {describe(env)}: a training reproduces to the last digit on the same kind of processor "
+            "and torch build, and lands elsewhere within the seed spread on another (docs/training.md).")
+    if rec.get("resumed_on"):
+        line += " Resumed with " + "; ".join(describe(e) for e in rec["resumed_on"]) + "."
+    return [line, ""]
 
 
 def _true_scales_note(e: dict[str, Any]) -> str:
@@ -211,6 +228,7 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
         "",
         _inputs_line(run_dir),
         "",
+        *_environment_lines(run_dir),
         f"{e['num_samples']} sampled configurations against {e['num_gt']} ground-truth configurations on "
         f"{e['num_views']} test views each; {100 * e['covisible_fraction']:.1f}% of test pixels are co-visible "
         "with the training video (the rest are masked out). Each ground truth is matched to the sample with the "

@@ -19,9 +19,10 @@ A single-object scene has no scale phases and no scale network. Objects absent f
 are never evaluated on its rays; no depth loss is used when the inputs carry no sparse depth.
 
 Run directory: ``config.yaml``, ``inputs/`` (the per-object inputs used), ``run.json`` (the
-dataset path, provenance only), ``checkpoint.pt`` (atomic, every ``checkpoint_every``
-iterations and at the end; has every RNG state, so ``--resume`` reproduces an uninterrupted run
-bit for bit on the CPU; CUDA's atomic adds make runs agree only up to rounding),
+dataset path, provenance only; :mod:`osn.train.environment`'s record of what it trained with,
+and ``resumed_on`` for resumes on another kind of processor or torch build), ``checkpoint.pt``
+(atomic, every ``checkpoint_every`` iterations and at the end; has every RNG state, so
+``--resume`` reproduces an uninterrupted run bit for bit on the same kind of CPU; CUDA's atomic adds make runs agree only up to rounding),
 ``metrics.jsonl`` (one JSON line per evaluation: wall time, iteration, phase, losses, training
 PSNR and, when the caller gives the exact region, the valid-set precision / recall / IoU and the
 relative scale-interval error).
@@ -47,6 +48,7 @@ from osn.preprocess.inputs import SceneInputs, load_inputs, save_inputs
 from osn.model.scale_net import NonFiniteScores
 from osn.train.checkpoint import TrainingDiverged, append_metrics, save_checkpoint, truncate_metrics
 from osn.train.config import TrainConfig
+from osn.train.environment import describe, environment, same_kernels
 from osn.train.monitor import TrainingMonitor
 from osn.train.schedule import Phase
 from osn.train.tensors import pick_device
@@ -64,8 +66,9 @@ def check_run_directory(out: str | Path, resume: bool) -> None:
         raise FileExistsError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
 
 
-def _start_run(out: Path, cfg: TrainConfig, inputs: SceneInputs, dataset: str | Path | None) -> None:
-    """Write what a new run depends on: its inputs, ``config.yaml`` and ``run.json``."""
+def _start_run(out: Path, cfg: TrainConfig, inputs: SceneInputs, dataset: str | Path | None, env: dict[str, Any]) -> None:
+    """Write what a new run depends on: its inputs, ``config.yaml`` and ``run.json`` (the dataset
+    and what it trains on, :func:`osn.train.environment.environment`)."""
     # A run killed before its first checkpoint may have left metric lines; a fresh start
     # rewrites them, so they must not stay in front of the new curve.
     (out / "metrics.jsonl").unlink(missing_ok=True)
@@ -74,7 +77,19 @@ def _start_run(out: Path, cfg: TrainConfig, inputs: SceneInputs, dataset: str | 
     D.atomic_write_bytes(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False).encode())
     # Provenance for people and for `osn export` (its test cameras); training never reads it back:
     # what it measures against comes from its caller (``region``).
-    D.atomic_write_json(out / "run.json", {"dataset": str(dataset) if dataset else None})
+    D.atomic_write_json(out / "run.json", {"dataset": str(dataset) if dataset else None, "environment": env})
+
+
+def _record_resume(out: Path, env: dict[str, Any]) -> None:
+    """A resume on another kind of processor or torch build continues the run with other
+    rounding: ``run.json`` lists it under ``resumed_on`` and a warning says so."""
+    path = out / "run.json"
+    rec = D.read_json(path) if path.exists() else {}
+    seen = [rec.get("environment") or {}, *rec.get("resumed_on", [])]
+    if rec.get("environment") is not None and not any(same_kernels(e, env) for e in seen):
+        log.warning("%s: started with %s, resumed with %s: the rest of the run rounds differently "
+                    "(not the figures an uninterrupted run would give)", out, describe(rec["environment"]), describe(env))
+        D.atomic_write_json(path, {**rec, "resumed_on": [*rec.get("resumed_on", []), env]})
 
 
 def _metrics_record(trainer: Trainer, phase: Phase, monitor: TrainingMonitor) -> dict[str, Any]:
@@ -159,8 +174,13 @@ def train(
         if inputs is None:
             raise ValueError(f"{out}: a new run needs its per-object inputs (oracle or preprocessed)")
         cfg = cfg or TrainConfig()
-        _start_run(out, cfg, inputs, dataset)
-    trainer = Trainer(inputs, cfg, pick_device(cfg.device))
+    device = pick_device(cfg.device)
+    env = environment(device)
+    if resume:
+        _record_resume(out, env)
+    else:
+        _start_run(out, cfg, inputs, dataset, env)
+    trainer = Trainer(inputs, cfg, device)
     if resume:
         # Read onto the CPU: load_state_dict moves weights and optimiser state to the device
         # itself, and the RNG states it restores must stay on the CPU (a CUDA resume crashed).

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from scenecore import export_format as osn_core
 
@@ -78,6 +79,8 @@ def test_outputs_are_sensible(demo):
     assert all(b["pixel_share"] == by["true scales"]["pixel_share"] for b in by.values())
     assert all(abs(sum(b["error_share"]) - 1.0) < 1e-9 for b in by.values())
     assert "Inputs: **oracle**" in report and "not the method as published" in report  # the ablation is labelled
+    cap = torch.backends.cpu.get_cpu_capability()
+    assert f"Trained with torch {torch.__version__} on cpu (" in report and f"{cap} kernels" in report  # what reproduces it
     assert report.count("![") >= 3
     row = next(ln for ln in report.splitlines() if ln.startswith("| training time"))
     assert " dB / " in row  # the time is reported with what it bought (PSNR / IoU)

@@ -62,13 +62,37 @@ def test_training_measures_only_against_the_region_its_caller_gives(
     cfg = _cfg(stage1_iters=40, rounds=0, final_scale_iters=10)
     run = train(tmp_path / "r", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, dataset=tiny_dataset,
                 progress=False, max_iterations=20)
-    assert json.loads((run / "run.json").read_text()) == {"dataset": str(tiny_dataset)}
+    assert json.loads((run / "run.json").read_text())["dataset"] == str(tiny_dataset)
     train(run, resume=True, progress=False)
     m = _metrics(run)
     assert [r["iteration"] for r in m] == [20, 40, 50] and "iou" in m[0] and not any("iou" in r for r in m[1:])
     anonymous = train(tmp_path / "anonymous", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region,
                       progress=False, max_iterations=20)
-    assert json.loads((anonymous / "run.json").read_text()) == {"dataset": None} and "iou" in _metrics(anonymous)[0]
+    assert json.loads((anonymous / "run.json").read_text())["dataset"] is None and "iou" in _metrics(anonymous)[0]
+
+
+def test_run_json_records_what_the_run_computed_on_and_a_resume_elsewhere(
+    tiny_dataset: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """run.json names the torch build, device and CPU kernel set a run trained with (a training
+    reproduces to the digit only on the same kind); a resume on the same kind adds nothing, a
+    resume on another is listed under resumed_on with a warning."""
+    cfg = _cfg(stage1_iters=20, rounds=0, final_scale_iters=10)
+    run = train(tmp_path / "r", cfg, inputs=oracle_inputs(tiny_dataset), progress=False, max_iterations=10)
+    rec = json.loads((run / "run.json").read_text())
+    env = rec["environment"]
+    assert env["torch"] == torch.__version__ and env["device"] == "cpu" and env["threads"] == torch.get_num_threads()
+    assert env["cpu_capability"] == torch.backends.cpu.get_cpu_capability() and env["cpu"]
+    assert "resumed_on" not in rec
+    train(run, resume=True, progress=False, max_iterations=15)
+    assert json.loads((run / "run.json").read_text()) == rec  # same kind: nothing to note
+    other = {**env, "cpu_capability": "AVX512" if env["cpu_capability"] != "AVX512" else "AVX2"}
+    (run / "run.json").write_text(json.dumps({**rec, "environment": other}))
+    with caplog.at_level("WARNING", logger="osn.train.loop"):
+        train(run, resume=True, progress=False)
+    after = json.loads((run / "run.json").read_text())
+    assert after["environment"] == other and after["resumed_on"] == [env]
+    assert "rounds differently" in caplog.text
 
 
 def test_osn_train_reads_the_region_of_a_dataset_that_has_one(tiny_dataset: Path, tmp_path: Path) -> None:
