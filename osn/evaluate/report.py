@@ -58,8 +58,12 @@ def _environment_lines(run_dir: Path) -> list[str]:
     env = rec.get("environment") if isinstance(rec, dict) else None
     if not env:
         return []
-    line = (f"Trained with {describe(env)}: a training reproduces to the last digit on the same kind of processor "
-            "and torch build, and lands elsewhere within the seed spread on another (docs/training.md).")
+    if str(env.get("device", "")).startswith("cuda"):
+        line = (f"Trained with {describe(env)}: CUDA's atomic adds make two such trainings agree only up to rounding, "
+                "which training carries on (docs/training.md).")
+    else:
+        line = (f"Trained with {describe(env)}: a training reproduces to the last digit on the same kind of processor "
+                "and torch build, and lands elsewhere within the seed spread on another (docs/training.md).")
     if rec.get("resumed_on"):
         line += " Resumed with " + "; ".join(describe(e) for e in rec["resumed_on"]) + "."
     return [line, ""]

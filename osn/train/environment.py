@@ -45,9 +45,10 @@ def environment(device: torch.device) -> dict[str, Any]:
 
 
 def same_kernels(a: dict[str, Any], b: dict[str, Any]) -> bool:
-    """Whether two records compute alike: same torch build, device kind, GPU and CPU kernel set
-    (thread counts and versions of the rest do not change a training's arithmetic)."""
-    keys = ("torch", "device", "gpu", "cpu_capability")
+    """Whether two records compute alike: the same torch and numpy builds, device, GPU and CPU
+    kernel set. Thread counts are not compared: a CPU training is bit for bit the same on one
+    thread or two (README, the demo's times)."""
+    keys = ("torch", "numpy", "device", "gpu", "cpu_capability")
     return all(a.get(k) == b.get(k) for k in keys)
 
 

@@ -82,7 +82,8 @@ def _start_run(out: Path, cfg: TrainConfig, inputs: SceneInputs, dataset: str | 
 
 def _record_resume(out: Path, env: dict[str, Any]) -> None:
     """A resume on another kind of processor or torch build continues the run with other
-    rounding: ``run.json`` lists it under ``resumed_on`` and a warning says so."""
+    rounding: ``run.json`` lists it under ``resumed_on`` and a warning says so (a run started
+    before runs recorded their environment has nothing to compare with)."""
     path = out / "run.json"
     rec = D.read_json(path) if path.exists() else {}
     seen = [rec.get("environment") or {}, *rec.get("resumed_on", [])]

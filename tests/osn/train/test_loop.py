@@ -228,3 +228,23 @@ def test_alone_terms_and_scale_lr_decay_train_and_resume_exactly(tiny_dataset: P
     assert all(torch.equal(sa["net"][k], sb["net"][k]) for k in sa["net"])
     assert all(torch.equal(fa[k], fb[k]) for fa, fb in zip(sa["fields"], sb["fields"]) for k in fa)
     assert any("alone_rgb" in r for r in _metrics(a))
+
+
+def test_report_names_what_the_run_trained_with(tmp_path: Path) -> None:
+    """report.md's environment line: the record's torch build and kernel set (or GPU), what
+    reproduces on a CPU and what CUDA does not promise, resumes elsewhere; nothing for runs
+    trained before runs recorded it."""
+    from osn.evaluate.report import _environment_lines
+    from osn.train.environment import environment
+
+    cpu = environment(torch.device("cpu"))
+    (tmp_path / "run.json").write_text(json.dumps({"dataset": None, "environment": cpu}))
+    line = _environment_lines(tmp_path)[0]
+    assert f"torch {torch.__version__} on cpu (" in line and f"{cpu['cpu_capability']} kernels" in line
+    assert "reproduces to the last digit" in line and "Resumed" not in line
+    gpu = {**cpu, "device": "cuda:0", "gpu": "NVIDIA H200"}
+    (tmp_path / "run.json").write_text(json.dumps({"dataset": None, "environment": gpu, "resumed_on": [cpu]}))
+    line = _environment_lines(tmp_path)[0]
+    assert "on cuda:0 (NVIDIA H200)" in line and "only up to rounding" in line and "Resumed with torch" in line
+    (tmp_path / "run.json").write_text(json.dumps({"dataset": None}))
+    assert _environment_lines(tmp_path) == []
