@@ -86,11 +86,13 @@ def _record_resume(out: Path, env: dict[str, Any]) -> None:
     before runs recorded their environment has nothing to compare with)."""
     path = out / "run.json"
     rec = D.read_json(path) if path.exists() else {}
-    seen = [rec.get("environment") or {}, *rec.get("resumed_on", [])]
-    if rec.get("environment") is not None and not any(same_kernels(e, env) for e in seen):
+    if not rec.get("environment"):
+        return
+    resumed = rec.get("resumed_on", [])
+    if not any(same_kernels(e, env) for e in [rec["environment"], *resumed]):
         log.warning("%s: started with %s, resumed with %s: the rest of the run rounds differently "
                     "(not the figures an uninterrupted run would give)", out, describe(rec["environment"]), describe(env))
-        D.atomic_write_json(path, {**rec, "resumed_on": [*rec.get("resumed_on", []), env]})
+        D.atomic_write_json(path, {**rec, "resumed_on": [*resumed, env]})
 
 
 def _metrics_record(trainer: Trainer, phase: Phase, monitor: TrainingMonitor) -> dict[str, Any]:

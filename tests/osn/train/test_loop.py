@@ -93,6 +93,10 @@ def test_run_json_records_what_the_run_computed_on_and_a_resume_elsewhere(
     after = json.loads((run / "run.json").read_text())
     assert after["environment"] == other and after["resumed_on"] == [env]
     assert "rounds differently" in caplog.text
+    from osn.train.environment import same_kernels
+
+    gpu = {**env, "device": "cuda:0", "gpu": "NVIDIA H200"}
+    assert same_kernels(gpu, {**gpu, "device": "cuda:1", "threads": 16}) and not same_kernels(gpu, {**gpu, "gpu": "NVIDIA H100"})
 
 
 def test_osn_train_reads_the_region_of_a_dataset_that_has_one(tiny_dataset: Path, tmp_path: Path) -> None:
