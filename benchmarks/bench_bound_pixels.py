@@ -1,0 +1,137 @@
+"""Where a pair bound's error comes from: the exact bound's pixels against the final label pool's.
+
+    python benchmarks/bench_bound_pixels.py RUN [RUN ...] --data DATASET [--show PAIR ...] [--rows N]
+
+Each ``RUN`` is an ``osn train`` run on ``DATASET`` (a benchgen dataset: its ``spec.yaml`` is
+rendered again with Blender, so bpy must be installed). Every training frame's per-object depths
+are rendered alone (the renders ``benchgen generate`` takes the exact region's bounds from,
+``B_ij = min d_j / d_i`` over the pixels showing i, :mod:`scenecore.validity`); each run's final
+fields give the label pool the final scale phase labels (:func:`osn.train.labels.build_label_pool`).
+
+Prints per run and pair ``i < j`` (i visible in front of j): the exact bound and over how many
+pixels; the pool's rays for the pair, the exact bound over those rays alone and the learned one
+(before any trim), the median of learned over exact ratio per ray; how many of the pixels within 1%
+of the exact bound are pool rays. A learned bound off the exact one is then either the pool lacking
+the bound's pixels (the hidden object not covered there) or the fields' depths at them, and
+``--show "ring-toy<gnome"`` lists those pixels with the learned and exact depth of both objects.
+Per object, the median relative error of its learned depth (``depth / acc``) on its own visible
+pixels (``acc`` above its coverage threshold) against the dataset's depth. docs/training.md,
+"Where the two bounds' errors sit". Reads the ground truth: a measurement, not part of the method.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchutil import print_command
+
+from osn.preprocess.inputs import load_inputs
+from osn.train import TrainConfig, Trainer
+from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
+from scenecore.dataset.images import read_depth
+
+
+def exact_depths(data: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Per training frame of ``data`` (transforms order): ``alone (T, K, H, W)`` planar depth of
+    every object rendered alone (``inf`` where it does not cover the pixel), ``ids (T, H, W)``,
+    and the objects' names (index = dataset id)."""
+    from benchgen.render.blender import Renderer
+    from benchgen.render.generate import ALONE_SAMPLES
+    from benchgen.scene.geometry import build_scene
+    from benchgen.scene.spec import read_spec_yaml, spec_from_dict
+
+    spec_path = data / "spec.yaml"
+    built = build_scene(spec_from_dict(read_spec_yaml(spec_path), str(spec_path)))
+    frames = {f.name: f for f in built.scene.frames}
+    renderer = Renderer(built, None)
+    K = len(built.objects)
+    alone, ids = [], []
+    for entry in json.loads((data / "transforms_train.json").read_text())["frames"]:
+        name = Path(entry["file_path"]).name
+        f = frames.get(name) or frames[f"train/{name}"]
+        poses = built.poses(f.time_index)
+        ids.append(renderer.render(f.camera_to_world, poses).ids)
+        alone.append(np.stack([renderer.render(f.camera_to_world, poses, ALONE_SAMPLES, only=k).depth for k in range(K)]))
+    a = np.stack(alone).astype(np.float64)
+    return np.where(np.isfinite(a) & (a > 0), a, np.inf), np.stack(ids), [o.name for o in built.objects]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", help="osn train run directories trained on DATASET")
+    ap.add_argument("--data", required=True, help="the benchgen dataset the runs were trained on")
+    ap.add_argument("--show", nargs="*", default=[], help='pairs "front<back" whose tightest pixels to list')
+    ap.add_argument("--rows", type=int, default=3, help="pixels listed per shown pair (the exact bound's tightest)")
+    a = ap.parse_args()
+    print_command()
+    logging.basicConfig(level=logging.ERROR)
+    data = Path(a.data)
+    alone, ids, names_gt = exact_depths(data)
+    T, K_gt, H, W = alone.shape
+    A = alone.reshape(T, K_gt, H * W)
+    vis = ids.reshape(T, H * W)
+    frames = json.loads((data / "transforms_train.json").read_text())["frames"]
+    truth = np.stack([read_depth(data / "train" / "depth" / (Path(f["file_path"]).name + ".exr")).reshape(-1) for f in frames])
+    for run_dir in map(Path, a.runs):
+        cfg = TrainConfig.from_yaml(run_dir / "config.yaml", run_config=True)
+        tr = Trainer(load_inputs(run_dir / "inputs"), cfg, torch.device("cpu"))
+        tr.load_state_dict(torch.load(run_dir / "checkpoint.pt", weights_only=False))
+        st = tr.st
+        if (st.H, st.W, st.T) != (H, W, T):
+            raise SystemExit(f"{run_dir}: trained on {st.T} frames of {st.W}x{st.H}, {data} has {T} of {W}x{H}")
+        names = [o.name for o in st.inputs.objects]
+        gt_of = [names_gt.index(n) for n in names]
+        units = np.array([o.unit_to_world for o in st.inputs.objects], dtype=np.float64)
+        pool = build_label_pool(st, tr.fields, cfg, 0)
+        flat = pool["flat"].numpy()
+        fr, px = flat // (H * W), flat % (H * W)
+        gt, cov = pool["gt"].numpy(), pool["covered"].numpy()
+        d = pool["depth"].numpy().astype(np.float64) * units
+        print(f"\n{run_dir}: {len(flat)} pool rays")
+        for i in range(st.K):
+            for j in range(st.K):
+                I, J = gt_of[i], gt_of[j]
+                if i == j:
+                    continue
+                with np.errstate(invalid="ignore"):  # inf / inf where neither covers: masked below
+                    r = np.where(vis == I, A[:, J] / A[:, I], np.inf)  # (T, HW) exact ratio where i is visible
+                if not np.isfinite(r).any():
+                    continue
+                B = float(r.min())
+                m = (gt == i) & cov[:, j]
+                exact_pool, learned = r[fr[m], px[m]], d[m, j] / d[m, i]
+                tight = np.argwhere(r < B * 1.01)
+                in_pool = {(f, p): n for n, (f, p) in enumerate(zip(fr[m].tolist(), px[m].tolist()))}
+                line = f"  {names[i]} < {names[j]}: exact {B:.4f} ({int(np.isfinite(r).sum())} px)"
+                if m.any():
+                    line += (f" | pool {int(m.sum())} rays: exact {exact_pool.min():.4f}, learned {learned.min():.4f}, "
+                             f"learned / exact median {np.median(learned / exact_pool):.4f}")
+                print(line + f" | pixels within 1% of the bound {len(tight)}, in the pool "
+                      f"{sum((int(f), int(p)) in in_pool for f, p in tight)}")
+                if f"{names[i]}<{names[j]}" not in a.show:
+                    continue
+                for f, p in sorted(map(tuple, tight.tolist()), key=lambda fp: r[fp])[: a.rows]:
+                    n = in_pool.get((f, p))
+                    where = (f"learned {learned[n]:.4f}: {names[i]} {d[m][n, i]:.3f}, {names[j]} {d[m][n, j]:.3f}"
+                             if n is not None else "not a pool ray (the hidden object not covered, or the ray dropped)")
+                    print(f"    frame {f} x {p % W} y {p // W}: exact {r[f, p]:.4f} ({names[i]} {A[f, I, p]:.3f}, "
+                          f"{names[j]} {A[f, J, p]:.3f}); {where}")
+        lp = label_pixels(st, cfg)
+        c = render_alone_depths(st, tr.fields, lp, cfg)
+        lab, lpn = st.labels.reshape(-1)[lp].numpy(), lp.numpy()
+        errs = []
+        for k in range(st.K):
+            own = (lab == k) & c["covered"][:, k].numpy()
+            e = c["depth"][:, k].numpy()[own] * units[k] / truth[lpn[own] // (H * W), lpn[own] % (H * W)] - 1
+            errs.append(f"{names[k]} {np.median(e):+.4f}" if len(e) else f"{names[k]} -")
+        print("  learned depth on own visible pixels, median relative error: " + ", ".join(errs))
+
+
+if __name__ == "__main__":
+    main()
