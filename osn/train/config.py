@@ -32,6 +32,9 @@ def _auto_or(rule: Rule) -> Rule:
 _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
+    "w_before_depth": number(0.0),
+    # A margin of 1 would empty the surface itself; 0 nothing.
+    "before_depth_margin": number(0.0, 1.0, lo_open=True, hi_open=True),
     "w_edge": _auto_or(number(0.0)),
     "anchor_coverage": _auto_or(number(0.0, 1.0)),
     "edge_slope": number(0.0),
@@ -176,6 +179,8 @@ class TrainConfig:
     w_opacity: float = 1.0
     w_free: float = 1.0
     w_distortion: float = 0.03
+    w_before_depth: float = 0.0
+    before_depth_margin: float = 0.95
     w_alone: float = 1.0
     w_edge: float | str = "auto"  # resolved by resolve_w_edge
     edge_rays: int = 64
