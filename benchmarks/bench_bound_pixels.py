@@ -42,7 +42,7 @@ def exact_depths(data: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     every object rendered alone (``inf`` where it does not cover the pixel), ``ids (T, H, W)``,
     and the objects' names (index = dataset id)."""
     from benchgen.render.blender import Renderer
-    from benchgen.render.generate import ALONE_SAMPLES
+    from benchgen.render.generate import render_with_alone_depths
     from benchgen.scene.geometry import build_scene
     from benchgen.scene.spec import read_spec_yaml, spec_from_dict
 
@@ -50,14 +50,12 @@ def exact_depths(data: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     built = build_scene(spec_from_dict(read_spec_yaml(spec_path), str(spec_path)))
     frames = {f.name: f for f in built.scene.frames}
     renderer = Renderer(built, None)
-    K = len(built.objects)
     alone, ids = [], []
     for entry in json.loads((data / "transforms_train.json").read_text())["frames"]:
         name = Path(entry["file_path"]).name
-        f = frames.get(name) or frames[f"train/{name}"]
-        poses = built.poses(f.time_index)
-        ids.append(renderer.render(f.camera_to_world, poses).ids)
-        alone.append(np.stack([renderer.render(f.camera_to_world, poses, ALONE_SAMPLES, only=k).depth for k in range(K)]))
+        full, depths = render_with_alone_depths(renderer, built, frames.get(name) or frames[f"train/{name}"])
+        ids.append(full.ids)
+        alone.append(depths)
     a = np.stack(alone).astype(np.float64)
     return np.where(np.isfinite(a) & (a > 0), a, np.inf), np.stack(ids), [o.name for o in built.objects]
 

@@ -32,7 +32,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import TYPE_CHECKING, Any, Iterable, Iterator
 
 import numpy as np
 
@@ -44,6 +44,10 @@ from benchgen.scene.plausibility import PlausibilityChecker, check_authored_scen
 from benchgen.scene.spec import SceneSpec, dump_spec, read_spec_yaml, spec_from_dict
 from scenecore.validity import EmptyRegionError, ValidRegion, accumulate_ratio_bounds
 from benchgen.render.verify import compare_training, summarise, test_difference, thresholds
+from scenecore.dataset.model import Frame
+
+if TYPE_CHECKING:  # bpy is imported only by processes that render
+    from benchgen.render.blender import RenderOutput, Renderer
 
 #: Hidden directory inside a dataset for resumable bookkeeping (per-configuration verification).
 STATE_DIR = ".benchgen"
@@ -51,6 +55,25 @@ STATE_DIR = ".benchgen"
 TEST_CHUNK = 15
 #: Samples for the per-object depth renders: depth and ids come from one ray per pixel anyway.
 ALONE_SAMPLES = 1
+
+
+def render_with_alone_depths(renderer: Renderer, built: BuiltScene, frame: Frame) -> tuple[RenderOutput, np.ndarray]:
+    """One training ``frame``: its full render and every object's planar depth rendered alone,
+    ``(K, H, W)`` (``inf`` where the object does not cover the pixel): the exact region's inputs.
+
+    Raises:
+        RuntimeError: the per-object renders do not trace the full render's ray per pixel (the
+            bounds are exact only if they do: checked rather than assumed).
+    """
+    K = len(built.objects)
+    poses = built.poses(frame.time_index)
+    full = renderer.render(frame.camera_to_world, poses)
+    alone = np.stack([renderer.render(frame.camera_to_world, poses, ALONE_SAMPLES, only=k).depth for k in range(K)])
+    hit = full.ids != D.NO_OBJECT
+    seen_depth = np.take_along_axis(alone, np.minimum(full.ids, K - 1)[None].astype(np.int64), 0)[0]
+    if not np.allclose(seen_depth[hit], full.depth[hit], rtol=1e-5):
+        raise RuntimeError(f"frame {frame.name}: per-object depth renders disagree with the full render")
+    return full, alone
 
 
 @dataclass
@@ -105,18 +128,9 @@ class Worker:
         K = len(self.built.objects)
         bounds = np.full((K, K), np.inf)
         for name in task.frames:
-            f = self.frames[name]
-            poses = self.built.poses(f.time_index)
-            full = self.renderer.render(f.camera_to_world, poses)
+            full, alone = render_with_alone_depths(self.renderer, self.built, self.frames[name])
             if not D.frame_paths(self.root, name).exist():
                 D.write_frame(self.root, name, full.rgb8(), full.depth, full.ids)
-            alone = np.stack([self.renderer.render(f.camera_to_world, poses, ALONE_SAMPLES, only=k).depth for k in range(K)])
-            # The bounds are exact only if the per-object renders trace the same ray per pixel as
-            # the full render; check it rather than assume it.
-            hit = full.ids != D.NO_OBJECT
-            seen_depth = np.take_along_axis(alone, np.minimum(full.ids, K - 1)[None].astype(np.int64), 0)[0]
-            if not np.allclose(seen_depth[hit], full.depth[hit], rtol=1e-5):
-                raise RuntimeError(f"frame {name}: per-object depth renders disagree with the full render")
             accumulate_ratio_bounds(bounds, full.ids, alone, where=f"frame {name}")
         return TaskResult(task, 0, 0.0, bounds=bounds)
 

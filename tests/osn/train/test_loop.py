@@ -18,6 +18,7 @@ from osn.cli.train import dataset_region
 from osn.preprocess.oracle import oracle_inputs
 from osn.train import Trainer, TrainingDiverged, read_metrics, train
 from osn.train.checkpoint import truncate_metrics
+from osn.train.environment import same_kernels
 from tests.osn.train.common import metrics as _metrics
 from tests.osn.train.common import small_config as _cfg
 
@@ -93,8 +94,6 @@ def test_run_json_records_what_the_run_computed_on_and_a_resume_elsewhere(
     after = json.loads((run / "run.json").read_text())
     assert after["environment"] == other and after["resumed_on"] == [env]
     assert "rounds differently" in caplog.text
-    from osn.train.environment import same_kernels
-
     gpu = {**env, "device": "cuda:0", "gpu": "NVIDIA H200"}
     assert same_kernels(gpu, {**gpu, "device": "cuda:1", "threads": 16}) and not same_kernels(gpu, {**gpu, "gpu": "NVIDIA H100"})
 
