@@ -17,7 +17,7 @@ from osn.model.fields import FIELD_ADDED_LATER, FieldConfig
 from osn.preprocess.inputs import SceneInputs
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "scale_width", "scale_layers", "scale_samples",
+_POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "hidden_strips", "scale_width", "scale_layers", "scale_samples",
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
@@ -33,6 +33,7 @@ _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
     "w_before_depth": number(0.0),
+    "w_hidden_smooth": number(0.0),
     # A margin of 1 would empty the surface itself; 0 nothing.
     "before_depth_margin": number(0.0, 1.0, lo_open=True, hi_open=True),
     "w_edge": _auto_or(number(0.0)),
@@ -52,7 +53,8 @@ _RULES: dict[str, Rule] = {
 
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
-ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9}
+ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9,
+                               "w_hidden_smooth": 0.0}
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -181,6 +183,8 @@ class TrainConfig:
     w_distortion: float = 0.03
     w_before_depth: float = 0.0
     before_depth_margin: float = 0.95
+    w_hidden_smooth: float = 0.0
+    hidden_strips: int = 32
     w_alone: float = 1.0
     w_edge: float | str = "auto"  # resolved by resolve_w_edge
     edge_rays: int = 64

@@ -137,6 +137,32 @@ class SceneTensors:
             out.append(torch.nonzero(keep.reshape(-1))[:, 0])
         return out
 
+    def hidden_anchor_strips(self, length: int = 5) -> torch.Tensor:
+        """Flat pixel indices ``(S, length)`` of image-row and image-column strips that cross a
+        pixel where an object hides the anchor: every pixel of a strip lies in the image and
+        shows the anchor or an object (none empty, none ignored), in a frame where the anchor is
+        posed. Empty ``(0, length)`` when no object ever hides it. The strips' visible anchor
+        pixels anchor the hidden ones to the visible surface around them
+        (:func:`osn.train.trainer.disparity_curvature`)."""
+        T, H, W = self.T, self.H, self.W
+        lab = self.labels.reshape(T, H, W)
+        shown = (lab >= 0) & ~self.ignored.reshape(T, H, W) & self.present[self.anchor][:, None, None]
+        hidden = shown & (lab != self.anchor)
+        h = length // 2
+        out = []
+        for axis, step, n in ((1, W, H), (2, 1, W)):
+            # Centres whose whole strip (offsets -h..h along the axis) is shown and crosses a hidden pixel.
+            whole, crosses = shown.clone(), torch.zeros_like(hidden)
+            for o in range(-h, h + 1):
+                whole &= torch.roll(shown, -o, axis)
+                crosses |= torch.roll(hidden, -o, axis)
+            i = torch.arange(n, device=self.device)
+            inside = (i >= h) & (i < n - h)  # torch.roll wraps around; strips may not
+            whole &= inside[:, None] if axis == 1 else inside[None, :]
+            centre = torch.nonzero((whole & crosses).reshape(-1))[:, 0]
+            out.append(centre[:, None] + torch.arange(-h, h + 1, device=self.device)[None, :] * step)
+        return torch.cat(out)
+
     def edge_pairs(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Per object its silhouette pixels and, for each, the 4-neighbour on its mask farthest from
         the mask's boundary: two flat ``(E,)`` index tensors (same frame). The image border is no

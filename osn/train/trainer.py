@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 
 #: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
 REPLAY_SIZE = 4096
+#: Pixels per strip of ``w_hidden_smooth``: the shortest odd strip that has a second difference
+#: on each side of its centre, so a strip reaching two pixels into an object still holds one
+#: visible anchor pixel per triple at the silhouette.
+HIDDEN_STRIP_LENGTH = 5
 
 
 def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float = 0.0) -> torch.Tensor:
@@ -92,6 +96,25 @@ def edge_excess(depth: torch.Tensor, acc: torch.Tensor, inner_depth: torch.Tenso
     return F.relu(d - d_in - slope).square().mean()
 
 
+def disparity_curvature(depth: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
+    """Mean squared second difference of disparity along pixel strips, relative to the middle
+    pixel's (held fixed): ``depth``, ``acc`` ``(S, L)`` the renderer's ``sum w t`` and opacity on
+    ``S`` strips of ``L`` adjacent pixels. ``(,)``; 0 (with a gradient path) when no triple of
+    adjacent rays all hit something (``acc > 0.5``).
+
+    Along an image line, a plane's disparity (inverse planar depth) is affine in the pixel
+    coordinate, so this is 0 on any plane: a floor or wall continued behind an object costs
+    nothing, while a hidden surface that leaves the visible one around it (the room's fog behind
+    the gnome read 10% near, docs/training.md) does.
+    """
+    hit = (acc[:, :-2] > 0.5) & (acc[:, 1:-1] > 0.5) & (acc[:, 2:] > 0.5)
+    if not bool(hit.any()):
+        return acc.sum() * 0.0
+    disp = acc / depth.clamp_min(1e-12)  # 1 / (depth / acc); depth > 0 wherever acc > 0.5
+    second = (disp[:, :-2] - 2.0 * disp[:, 1:-1] + disp[:, 2:]) / disp[:, 1:-1].detach()
+    return second[hit].square().mean()
+
+
 class Trainer:
     """Owns the fields, the scale network, their optimisers and the RNG; one ``step`` per iteration."""
 
@@ -133,6 +156,7 @@ class Trainer:
         self.in_front: frozenset[tuple[int, int]] = frozenset()
         self.free = self._free_pixels()
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
+        self.hidden_strips = self.st.hidden_anchor_strips(HIDDEN_STRIP_LENGTH) if cfg.w_hidden_smooth > 0 else None
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
@@ -237,6 +261,16 @@ class Trainer:
         n = len(i)
         return edge_excess(out.depth[:n], out.acc[:n], out.depth[n:], out.acc[n:], cfg.edge_slope)
 
+    def _hidden_loss(self) -> torch.Tensor:
+        """:func:`disparity_curvature` of the anchor alone on ``hidden_strips`` strips across
+        pixels where objects hide it (:meth:`SceneTensors.hidden_anchor_strips`)."""
+        strips = self.hidden_strips
+        if strips is None or not len(strips):
+            return torch.zeros((), device=self.device)
+        strips = strips[self._randint(len(strips), self.cfg.hidden_strips)]
+        out = self._render_alone(self.st.anchor, strips.reshape(-1))
+        return disparity_curvature(out.depth.reshape(strips.shape), out.acc.reshape(strips.shape))
+
     def _tv(self, k: int) -> torch.Tensor | float:
         w = self.cfg.field.tv_density
         return w * self.fields[k].density_tv() if w > 0 else 0.0
@@ -291,6 +325,10 @@ class Trainer:
                 l_dist = out.distortion[:n_rgb].mean()
                 total = total + cfg.w_distortion * l_dist
                 losses["distortion"] += l_dist.item() / st.K
+            if cfg.w_hidden_smooth > 0 and k == st.anchor:
+                l_hidden = self._hidden_loss()
+                total = total + cfg.w_hidden_smooth * l_hidden
+                losses["hidden_smooth"] = l_hidden.item()
             l_free = self._free_loss(k)
             total = total + cfg.w_free * l_free
             if self.w_edge > 0 and k != st.anchor:  # the anchor's edges are against objects, not a silhouette
