@@ -352,6 +352,19 @@ def test_hidden_anchor_strips_cross_objects_and_smoothing_them_flattens_the_hidd
     assert smooth < 0.75 * free, (smooth, free)  # measured 0.00081 against 0.00148 (fixed seeds)
 
 
+def test_hidden_anchor_term_auto_is_on_for_the_oracle_and_off_for_sfm(tiny_dataset: Path) -> None:
+    """``w_hidden_smooth: auto`` (the default) trains the oracle's inputs with the term and any
+    other source (SfM, a user's video) without; a number is itself; a word other than auto fails."""
+    from osn.train.config import W_HIDDEN_SMOOTH_ORACLE, resolve_w_hidden_smooth
+
+    auto = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
+    assert auto.w_hidden == W_HIDDEN_SMOOTH_ORACLE > 0 and auto.hidden_strips is not None
+    assert "hidden_smooth" in auto.step_stage1()
+    assert resolve_w_hidden_smooth("auto", "colmap") == 0.0 and resolve_w_hidden_smooth(0.5, "colmap") == 0.5
+    with pytest.raises(ValueError, match="w_hidden_smooth"):
+        _cfg(w_hidden_smooth="always")
+
+
 def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tmp_path: Path) -> None:
     """``anchor_guide_samples`` reaches the anchor's rays in training and in the trained run's
     renders (so evaluation samples the room as training did), never the other objects'; a run
