@@ -322,6 +322,13 @@ def test_disparity_curvature_is_zero_on_a_plane_and_not_across_a_fold() -> None:
     depth = (folded * acc[:1]).requires_grad_()
     disparity_curvature(depth, acc[:1]).backward()
     assert torch.isfinite(depth.grad).all() and depth.grad.abs().sum() > 0
+    # An empty ray beside opaque triples (the anchor missing a ray): its zero disparity may not
+    # turn the gradient into NaN.
+    gap = torch.tensor([[1.0, 1.0, 1.0, 0.0, 1.0]])
+    depth = (folded[None] * gap).requires_grad_()
+    loss = disparity_curvature(depth, gap)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(depth.grad).all(), depth.grad
 
 
 def test_hidden_anchor_strips_cross_objects_and_smoothing_them_flattens_the_hidden_anchor(tiny_dataset: Path) -> None:
