@@ -72,7 +72,7 @@ def by_source(value: float | str, source: str, oracle: float, other: float) -> f
 
 
 #: ``w_edge: auto`` on inputs other than the oracle's: the weight of the silhouette-depth term
-#: (:func:`osn.train.trainer.edge_excess`; docs/training.md, "Silhouette depth").
+#: (:func:`osn.train.losses.edge_excess`; docs/training.md, "Silhouette depth").
 W_EDGE_SFM = 1.0
 
 
@@ -85,7 +85,7 @@ def resolve_w_edge(value: float | str, source: str) -> float:
 
 
 #: ``w_hidden_smooth: auto`` on the oracle's inputs: the weight of the anchor's disparity curvature
-#: across the pixels objects hide it on (:func:`osn.train.trainer.disparity_curvature`).
+#: across the pixels objects hide it on (:func:`osn.train.losses.disparity_curvature`).
 W_HIDDEN_SMOOTH_ORACLE = 0.3
 
 

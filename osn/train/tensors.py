@@ -143,7 +143,7 @@ class SceneTensors:
         shows the anchor or an object (none empty, none ignored), in a frame where the anchor is
         posed. Empty ``(0, length)`` when no object ever hides it. The strips' visible anchor
         pixels anchor the hidden ones to the visible surface around them
-        (:func:`osn.train.trainer.disparity_curvature`)."""
+        (:func:`osn.train.losses.disparity_curvature`)."""
         T, H, W = self.T, self.H, self.W
         lab = self.labels.reshape(T, H, W)
         shown = (lab >= 0) & ~self.ignored.reshape(T, H, W) & self.present[self.anchor][:, None, None]

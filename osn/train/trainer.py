@@ -21,12 +21,13 @@ from osn.model.fields import Field, make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, in_front_pairs, order_constraints, trimmed_labels
-from osn.model.volume import ObjectRays, RenderOutput, render
+from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
                               resolve_anchor_guide_samples, resolve_depth_robust, resolve_final_label_trim, resolve_w_edge,
                               resolve_w_hidden_smooth)
 from osn.train.labels import build_label_pool, near_positives
+from osn.train.losses import before_depth_opacity, disparity_curvature, edge_excess, sparse_depth_loss
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
 
@@ -38,84 +39,6 @@ REPLAY_SIZE = 4096
 #: on each side of its centre, so a strip reaching two pixels into an object still holds one
 #: visible anchor pixel per triple at the silhouette.
 HIDDEN_STRIP_LENGTH = 5
-
-
-def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float = 0.0) -> torch.Tensor:
-    """Mean loss of rendered depths ``(P,)`` against sparse depths ``(P,)`` (object units).
-
-    ``robust`` 0: squared error. ``k > 0``: Cauchy, ``c^2 log(1 + r^2 / c^2)`` with the scale ``c``
-    ``k`` times the batch's median absolute residual ``r`` (not differentiated): the squared error
-    while the field is far from every depth (early: all residuals large), and a bounded pull from
-    the few depths far from the rest once it fits them. SfM gives such depths on repeated texture
-    (gnome-house's checker floor at 512 px: 22% of the room's sparse depths near half the true
-    depth, docs/preprocess.md), and a squared error moves the surface toward them.
-    """
-    if not target.numel():
-        return depth.sum() * 0.0
-    if robust <= 0:
-        return F.mse_loss(depth, target)  # the form every earlier run trained with, bit for bit
-    r2 = (depth - target).square()
-    # Floored so a batch that fits exactly (median residual 0) stays finite: log1p(0 / tiny) = 0.
-    c2 = (robust * robust * r2.detach().median()).clamp_min(1e-12)
-    return (c2 * torch.log1p(r2 / c2)).mean()
-
-
-def before_depth_opacity(rays: ObjectRays, dirs: torch.Tensor, depth: torch.Tensor, margin: float, n_samples: int,
-                         generator: torch.Generator | None = None) -> torch.Tensor:
-    """Mean squared opacity ``(,)`` one object reaches on its sparse-depth rays before ``margin``
-    times their depths ``depth (P,)`` (its own unit; ``rays``: its :class:`ObjectRays` on those
-    ``P`` rays, ``dirs (P, 3)``).
-
-    The sparse depth says the ray is empty up to the surface. Photometric terms cannot say so
-    where the camera moves little around an object (the space before its surface lies inside its
-    silhouette in every frame), and the depth term on ``sum w t`` empties it only slowly: the
-    oracle's sofa read 4.6% near on its own pixels with exact depths there (docs/training.md).
-    The margin leaves the soft surface itself alone. Not for the anchor: a ray grazing a floor
-    passes within a voxel of it long before its depth.
-    """
-    lo = rays.t_range.expand(len(depth), 2)[:, 0]
-    before = ObjectRays(rays.field, rays.cam_to_obj, rays.present, torch.stack([lo, depth * margin], 1), rays.guide)
-    return render([before], dirs, n_samples, generator).acc.square().mean()
-
-
-def edge_excess(depth: torch.Tensor, acc: torch.Tensor, inner_depth: torch.Tensor, inner_acc: torch.Tensor,
-                slope: float) -> torch.Tensor:
-    """Mean squared excess of silhouette rays' log depth over their inner neighbours' (held fixed)
-    beyond ``slope``; depths ``(n,)`` are the renderer's unnormalised ``sum w t`` with opacity ``acc``.
-
-    On a silhouette ray the field's soft edge is crossed only partly, and the opacity term then
-    puts the rest of the ray's weight behind the surface: the edge reads farther than the object
-    and the contact bounds it sets come out tight (docs/training.md). One-sided, so an edge may
-    read nearer than inside (a rim in front); only rays where both hit the object (``acc > 0.5``)
-    count, an empty ray having no depth. 0 (with a gradient path) when none does.
-    """
-    hit = (acc > 0.5) & (inner_acc > 0.5)
-    if not bool(hit.any()):
-        return acc.sum() * 0.0
-    d = torch.log(depth[hit] / acc[hit])
-    d_in = torch.log(inner_depth[hit] / inner_acc[hit]).detach()
-    return F.relu(d - d_in - slope).square().mean()
-
-
-def disparity_curvature(depth: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
-    """Mean squared second difference of disparity along pixel strips, relative to the middle
-    pixel's (held fixed): ``depth``, ``acc`` ``(S, L)`` the renderer's ``sum w t`` and opacity on
-    ``S`` strips of ``L`` adjacent pixels. ``(,)``; 0 (with a gradient path) when no triple of
-    adjacent rays all hit something (``acc > 0.5``).
-
-    Along an image line, a plane's disparity (inverse planar depth) is affine in the pixel
-    coordinate, so this is 0 on any plane: a floor or wall continued behind an object costs
-    nothing, while a hidden surface that leaves the visible one around it (the room's fog behind
-    the gnome's feet, its mean 2.35 m on a ray whose floor is at 2.65 m: docs/training.md) does.
-    """
-    hit = (acc[:, :-2] > 0.5) & (acc[:, 1:-1] > 0.5) & (acc[:, 2:] > 0.5)
-    if not bool(hit.any()):
-        return acc.sum() * 0.0
-    disp = acc / depth.clamp_min(1e-12)  # 1 / (depth / acc); depth > 0 wherever acc > 0.5
-    # Only opaque triples: an empty middle ray (disparity 0) would divide by zero, and its NaN
-    # would reach the gradient even with the triple masked out afterwards.
-    before, mid, after = disp[:, :-2][hit], disp[:, 1:-1][hit], disp[:, 2:][hit]
-    return ((before - 2.0 * mid + after) / mid.detach()).square().mean()
 
 
 class Trainer:

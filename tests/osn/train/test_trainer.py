@@ -17,7 +17,7 @@ from osn.train import Trainer, build_schedule
 from osn.train.config import resolve_anchor_coverage
 from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
-from osn.train.trainer import before_depth_opacity, disparity_curvature, sparse_depth_loss
+from osn.train.losses import before_depth_opacity, disparity_curvature, edge_excess, sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
 
 
@@ -549,7 +549,6 @@ def test_edge_excess_is_one_sided_beyond_the_slope_and_skips_empty_rays() -> Non
     """Depths are the renderer's ``sum w t`` with opacity ``acc``: an edge reading 10% farther
     than inside costs (log 1.1 - slope)^2, one reading nearer or within the slope costs nothing,
     and a ray that misses the object (acc <= 0.5, depth +inf once normalised) is left out."""
-    from osn.train.trainer import edge_excess
 
     slope = 0.02
 
