@@ -15,8 +15,8 @@ of the exact bound are pool rays. A learned bound off the exact one is then eith
 the bound's pixels (the hidden object not covered there) or the fields' depths at them, and
 ``--show "ring-toy<gnome"`` lists those pixels with the learned and exact depth of both objects.
 Per object, the median relative error of its learned depth (``depth / acc``) on its own visible
-pixels (``acc`` above its coverage threshold) against the dataset's depth. docs/training.md,
-"Where the two bounds' errors sit". Reads the ground truth: a measurement, not part of the method.
+pixels (``acc`` above its coverage threshold) against the dataset's depth (docs/experiments/).
+Reads the ground truth: a measurement, not part of the method.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def main() -> None:
     for run_dir in map(Path, a.runs):
         cfg = TrainConfig.from_yaml(run_dir / "config.yaml", run_config=True)
         tr = Trainer(load_inputs(run_dir / "inputs"), cfg, torch.device("cpu"))
-        tr.load_state_dict(torch.load(run_dir / "checkpoint.pt", weights_only=False))
+        tr.load_state_dict(torch.load(run_dir / "checkpoint.pt", weights_only=True))
         st = tr.st
         if (st.H, st.W, st.T) != (H, W, T):
             raise SystemExit(f"{run_dir}: trained on {st.T} frames of {st.W}x{st.H}, {data} has {T} of {W}x{H}")

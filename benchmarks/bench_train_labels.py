@@ -62,7 +62,7 @@ def main() -> None:
     cfg = TrainConfig.from_dict(d)
     tr = Trainer(load_inputs(run / "inputs"), cfg, torch.device("cpu"))
     fresh = {k: v.clone() for k, v in tr.net.state_dict().items()}
-    tr.load_state_dict(torch.load(a.checkpoint, weights_only=False))
+    tr.load_state_dict(torch.load(a.checkpoint, weights_only=True))
     tr.net.load_state_dict(fresh)  # the fields are the checkpoint's, the network starts untrained
     tr.net_opt = torch.optim.Adam(tr.net.parameters(), lr=cfg.scale_lr)
     ev = TrainingMonitor(tr, dataset_region(json.loads((run / "run.json").read_text())["dataset"]))

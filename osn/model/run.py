@@ -9,6 +9,7 @@ placed through :mod:`osn.placement`. All scale vectors are indexed by object *po
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,9 +171,19 @@ class TrainedRun:
 
 def read_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict:
     """Read an ``osn train`` checkpoint; ``CheckpointError`` naming ``path`` when it is truncated,
-    foreign, of another version or lacks the fields and config."""
+    foreign, of another version or lacks the fields and config.
+
+    Runs are shared between people, so a checkpoint is untrusted input: it is unpickled with
+    torch's weights-only loader, which rebuilds tensors, numbers, strings and containers and
+    refuses any other object (a crafted file cannot run code). Every checkpoint ``osn train``
+    writes holds only those types, old versions included.
+    """
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:  # weights-only refused an object: never retried unsafely
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: refused: the checkpoint holds objects other than weights and plain data, "
+                              f"which could run code when loaded ({first})") from None
     except Exception as e:  # a truncated or foreign file
         raise CheckpointError(f"{path}: not a readable osn checkpoint ({e})") from None
     if not isinstance(ckpt, dict):

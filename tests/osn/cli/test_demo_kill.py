@@ -94,7 +94,7 @@ def test_demo_killed_in_train_resumes_to_equal_metrics(reference: Path, tmp_path
     ckpt = work / "run" / "checkpoint.pt"
     _kill_demo_when(work, lambda out: ckpt.exists())
     assert not (work / ".done" / "train.json").exists(), "train finished before the kill"
-    killed_at = torch.load(ckpt, weights_only=False)["iteration"]
+    killed_at = torch.load(ckpt, weights_only=True)["iteration"]
     total = json.loads((reference / "run" / "metrics.jsonl").read_text().splitlines()[-1])["iteration"]
     assert 0 < killed_at < total
 

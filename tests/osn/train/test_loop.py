@@ -31,7 +31,7 @@ def test_training_improves_psnr_and_writes_metrics(tiny_dataset: Path, tiny_regi
     for key in ("wall_time", "rgb", "iou", "precision", "recall", "scale_rel_err"):
         assert any(key in r for r in m), key
     assert all(0.0 <= r["iou"] <= 1.0 for r in m if "iou" in r)
-    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
     assert ck["iteration"] == m[-1]["iteration"] and ck["net"] is not None
 
 
@@ -43,8 +43,8 @@ def test_resume_equals_uninterrupted(tiny_dataset: Path, tiny_region: ValidRegio
     b = train(tmp_path / "b", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False, max_iterations=35)
     train(b, resume=True, region=tiny_region, progress=False, max_iterations=45)
     train(b, resume=True, region=tiny_region, progress=False)
-    sa = torch.load(a / "checkpoint.pt", weights_only=False)
-    sb = torch.load(b / "checkpoint.pt", weights_only=False)
+    sa = torch.load(a / "checkpoint.pt", weights_only=True)
+    sb = torch.load(b / "checkpoint.pt", weights_only=True)
     for fa, fb in zip(sa["fields"], sb["fields"]):
         for k in fa:
             assert torch.equal(fa[k], fb[k]), k
@@ -193,7 +193,7 @@ def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
     monkeypatch.setattr(Trainer, "step_stage1", poisoned)
     with pytest.raises(TrainingDiverged, match=r"r: training diverged at iteration 28 \(stage1 phase\): loss .* is nan"):
         train(tmp_path / "r", _cfg(), inputs=oracle_inputs(tiny_dataset), progress=False)
-    state = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    state = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     assert state["iteration"] == 25
     assert all(torch.isfinite(v).all() for sd in state["fields"] for v in sd.values())
 
@@ -227,7 +227,7 @@ def test_alone_terms_and_scale_lr_decay_train_and_resume_exactly(tiny_dataset: P
     a = train(tmp_path / "a", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False)
     b = train(tmp_path / "b", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False, max_iterations=45)
     train(b, resume=True, region=tiny_region, progress=False)
-    sa, sb = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (a, b))
+    sa, sb = (torch.load(r / "checkpoint.pt", weights_only=True) for r in (a, b))
     assert all(torch.equal(sa["net"][k], sb["net"][k]) for k in sa["net"])
     assert all(torch.equal(fa[k], fb[k]) for fa, fb in zip(sa["fields"], sb["fields"]) for k in fa)
     assert any("alone_rgb" in r for r in _metrics(a))

@@ -396,7 +396,7 @@ def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tm
     # A checkpoint written before the resolved value was stored: ``auto`` as it was then (0 on the
     # oracle's inputs), and a run trained before the option: even.
     from osn.train.config import ANCHOR_GUIDE_SAMPLES, checkpoint_anchor_guide_samples, resolve_anchor_guide_samples
-    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     assert ckpt["anchor_guide"] == 16
     del ckpt["anchor_guide"]
     for config, guide in (({"anchor_guide_samples": "auto"}, 0), ({}, 0), ({"anchor_guide_samples": 8}, 8)):
@@ -598,7 +598,7 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     """``field.object_resolution: auto`` gives every object but the anchor a grid of about a voxel
     per training pixel on SfM inputs (here the tiny scene's oracle inputs relabelled), grown on the
     anchor's schedule; the trained run loads each at its own size. On the oracle's inputs, and
-    with 0, every object stays at ``resolution`` (as before the option)."""
+    with 0, every object stays at ``resolution``."""
     from osn.model.fields import FieldConfig
     from osn.model.run import load_run
     from osn.train.config import MIN_ANCHOR_PLANES, anchor_pixels, anchor_plane_size, object_resolutions
@@ -641,7 +641,7 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     assert anchor_plane_size(fcfg, anchor_as(sparse_depth=[d[:0] for d in o.sparse_depth])) == 0  # no depth: no planes
     # A run whose checkpoint predates the two options loads as it trained: each field at the
     # size its checkpoint holds, no planes.
-    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     for key in ("object_resolution", "anchor_planes"):
         del ckpt["config"]["field"][key]
     ckpt["fields"][a] = {k: v for k, v in ckpt["fields"][a].items() if k != "planes"}
@@ -649,15 +649,15 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     old = load_run(tmp_path / "r")
     t0 = int(inputs.objects[a].frames[0])
     assert old.fields[a].planes is None and np.isfinite(old.render_view(None, t0, np.ones(inputs.num_objects))["rgb"]).all()
-    # Resuming one (``auto`` gave it no planes then; today it gives P): the trainer rebuilds the
+    # Resuming one (trained without planes, where ``auto`` now gives P): the trainer rebuilds the
     # anchor's field as its checkpoint holds it, and its guide as it trained (no ``anchor_guide``
     # in the checkpoint: ``auto`` was even on the oracle's inputs).
     cfg = _cfg(field=dataclasses.replace(fcfg, anchor_planes=0), anchor_guide_samples=0)
     train(tmp_path / "p0", cfg, inputs=oracle, progress=False)
-    ckpt = torch.load(tmp_path / "p0" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "p0" / "checkpoint.pt", weights_only=True)
     del ckpt["anchor_guide"]
     resumed = Trainer(oracle, _cfg(field=fcfg, anchor_guide_samples="auto"), torch.device("cpu"))
-    assert resumed.fields[a].planes is not None and resumed.st.guide > 0  # what ``auto`` gives today
+    assert resumed.fields[a].planes is not None and resumed.st.guide > 0  # what ``auto`` gives on these inputs
     resumed.load_state_dict(ckpt)
     assert resumed.fields[a].planes is None and resumed.st.guide == 0
     resumed.step_fields()  # trains on as it trained
