@@ -3,8 +3,8 @@ the anchor per view, against rendering those rays again for every configuration,
 
 `osn.model.volume.render_by_hits` groups a view's rays by the object boxes they cross; most rays of
 a candidate configuration cross the anchor (the room) alone, whose samples are shaded once per
-view (`TrainedRun.shade_anchor`). Since 2026-11-27 those rays take rows of one render of the
-anchor alone (`ShadedSamples.alone`), made at the first configuration of the view and kept; the
+view (`TrainedRun.shade_anchor`). By default (``reuse_alone=True``) those rays take rows of one
+render of the anchor alone (`ShadedSamples.alone`), made at the first configuration of the view and kept; the
 reference (`reuse_alone=False`) composites them again for each configuration. Views alternate
 between the two, so machine noise hits both alike; the layers workload renders one object alone
 (no shaded anchor), so both modes run the same code there.

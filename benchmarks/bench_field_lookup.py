@@ -1,5 +1,5 @@
-"""Evaluation's renders with the dense fields looked up through ``grid_sample`` (no autograd, the
-default since the evening of 2026-11-26) against training's gather, side by side in one process.
+"""Evaluation's renders with the dense fields looked up through ``grid_sample`` (what evaluation
+uses: no autograd) against training's gather, side by side in one process.
 
 Without autograd, `osn.model.fields.DenseGridField` looks its grid up with
 `osn.model.fields.trilinear_frozen` (``grid_sample`` on a cached channels-first copy); the

@@ -9,20 +9,20 @@ oracle inputs unless ``--inputs`` gives `osn preprocess` ones, for a single data
 phase, round, PSNR, valid-set IoU / precision / recall) unless ``--quiet``, and one summary table
 of all runs at the end (final and best IoU, PSNR, wall time). With ``--seeds`` every variant is
 trained once per seed (``DIR/<dataset>/<variant>-seed<N>``) and the table adds each variant's
-mean and standard deviation over the seeds: one run's IoU moves by +-0.07 with the seed alone
-(docs/training.md), more than most options do. Variants (overrides of
+mean and standard deviation over the seeds: one run's IoU moves with the seed alone by more
+than most options move it (docs/experiments/). Variants (overrides of
 ``configs/osn-cpu.yaml``; docs/training.md explains each option):
 
-* ``before``: the defaults before 2026-11-25: ``free_space: anchor``, constant scale learning
-  rate, no stage-1 terms in field phases, rays dropped where any object is semi-transparent
-  (``uncertain_acc: 0.05``), every object pair kept (``pair_minority: 0``), the final scale
-  phase like the others (``final_label_trim: 0.01``, 300 steps);
-* ``after``: today's defaults (``free_space: ordered``, ``objects`` until 2026-11-28, with
-  ``free_band_objects: 1``, ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``,
-  ``pair_minority: 0.2``, a final scale phase of 2000 steps on labels trimmed by
-  ``final_label_trim: auto``, 0.002 on the oracle's inputs);
+* ``before``: ``free_space: anchor``, a constant scale learning rate (``scale_lr_final: 1``), no
+  stage-1 terms in field phases (``w_alone: 0``), rays dropped where any object is
+  semi-transparent (``uncertain_acc: 0.05``), every object pair kept (``pair_minority: 0``), the
+  final scale phase like the others (``final_label_trim: 0.01``, ``final_scale_iters: 300``);
+* ``after``: the config's own values (``free_space: ordered`` with ``free_band_objects: 1``,
+  ``w_alone: 1``, ``scale_lr_final: 0.1``, ``uncertain_acc: 0.9``, ``pair_minority: 0.2``, a
+  final scale phase of 2000 steps on labels trimmed by ``final_label_trim: auto``, 0.002 on the
+  oracle's inputs);
 * ``loose-final``: ``after`` with the final scale phase like the others (``final_label_trim:
-  0.01``, 300 steps): the defaults of the morning of 2026-11-25 but for today's other options;
+  0.01``, ``final_scale_iters: 300``);
 * ``tight-all``: ``loose-final`` with ``label_trim: 0.002`` in every scale phase;
 * ``no-minority``, ``no-objects``, ``no-alone``, ``uncertain``: ``after`` without one option.
 
@@ -96,15 +96,15 @@ def run_variant(dataset: str, name: str, base: dict, inputs_dir: str | None, wor
             print(f"{r['iteration']:5d} {r['wall_time']:7.1f} {r['phase']:>7} {r['round']:3d} {r['psnr']:6.2f} "
                   f"{r.get('iou', float('nan')):6.3f} {r.get('precision', float('nan')):6.3f} {r.get('recall', float('nan')):6.3f}", flush=True)
     last = rows[-1]
-    final = final_accuracy(out, region)  # today's monitor on the final weights (stratified points)
+    final = final_accuracy(out, region)  # the current monitor on the final weights (stratified points)
     return (Path(dataset).name, label, last["wall_time"], last["psnr"], final.get("iou", float("nan")),
             final.get("precision", float("nan")), final.get("recall", float("nan")), max(r.get("iou", 0.0) for r in rows))
 
 
 def final_accuracy(run: Path, region) -> dict:
-    """The training monitor's valid-set accuracy of the run's last checkpoint, measured now: runs
-    written before the monitor's stratified points (2026-11-25) logged a uniform-sample IoU of 0
-    for regions of 1e-6 of the box."""
+    """The training monitor's valid-set accuracy of the run's last checkpoint, measured now on its
+    stratified points: a run's own log may hold a uniform-sample IoU, which is 0 for regions of
+    1e-6 of the box."""
     cfg = TrainConfig.from_yaml(run / "config.yaml", run_config=True)
     tr = Trainer(load_inputs(run / "inputs"), cfg, torch.device("cpu"))
     tr.load_state_dict(read_checkpoint(run / "checkpoint.pt"))

@@ -4,13 +4,13 @@ For each variant, runs ``osn.preprocess.preprocess_dataset`` on a benchgen datas
 fail are skipped, not fatal) and prints one JSON line per object: frames registered of those
 visible, rotation error max / mean (degrees) and camera-centre error mean (metres) after a
 per-object similarity alignment to ground truth, plus the variant's wall time and its ratio to
-the first variant's. The target of issue 7 is every object registered in >= 90% of its visible
-frames with rotation error <= 1 degree.
+the first variant's. The target: every object registered in >= 90% of its visible frames with
+rotation error <= 1 degree.
 
     .venv/bin/python benchmarks/bench_preprocess.py DATASET [--variants previous,default]
 
-Variants: ``default`` (PreprocessConfig()), ``previous`` (the defaults before 2026-11-22:
-luminance, no guided matching, one mapper run, COLMAP's 4 px at 2x upsampling), and the
+Variants: ``default`` (PreprocessConfig()), ``previous`` (``grey: luminance``, ``guided_matching:
+false``, ``mapper_restarts: 1``, ``epipolar_error: 2``, i.e. COLMAP's 4 px at 2x upsampling), and the
 single-change variants ``no-guided``, ``luminance``, ``one-run``, ``loose-epipolar``,
 ``no-check`` (no registration check, osn.preprocess.repair) and ``no-robust-ba`` (no final Cauchy BA).
 """

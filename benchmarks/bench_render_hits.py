@@ -3,7 +3,7 @@ every ray, side by side in one process.
 
 `TrainedRun.render_view` renders through `osn.model.volume.render_by_hits` (rays grouped by the
 set of object boxes they cross); the reference composites every posed object on every ray
-(`osn.model.volume.render`, as before 2026-11-26). Two workloads of `osn evaluate`, alternated
+(`osn.model.volume.render`). Two workloads of `osn evaluate`, alternated
 per view so machine noise hits both alike:
 - candidates: whole configurations on test views, the anchor shaded once per view (exact scoring);
 - layers: one object alone at a time (the layered search renders Q scales of each object).

@@ -1,5 +1,5 @@
 """Evaluation's renders with views side by side on CPU threads (`osn.model.parallel.map_views`,
-the default since 2026-11-26) against one view at a time on torch's intra-op threads (before).
+what evaluation uses) against one view at a time on torch's intra-op threads.
 
 Two workloads of `osn evaluate`, each run under both modes in turn, twice (A B A B), so machine
 noise hits both alike:

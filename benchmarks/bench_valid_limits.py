@@ -9,8 +9,7 @@ region, the share of the region the set misses there (too tight) and its volume 
 loose), both in units of the region's volume: ``osn evaluate``'s estimator
 (:func:`osn.evaluate.valid_set.valid_set_accuracy`, ``--points`` per stratum, seed 0) without
 rendering anything, seconds per run. Where IoU moves between seeds, the pair columns say which
-bound moved and in which direction (docs/training.md, "Which bound moves between seeds, and four
-changes that did not steady it").
+bound moved and in which direction (docs/experiments/).
 """
 
 from __future__ import annotations

@@ -61,7 +61,7 @@ def _fcurve_collection(obj: bpy.types.Object, create: bool, made: _Created | Non
 def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray, made: _Created | None = None) -> None:
     """Key ``obj``'s location, quaternion and scale to ``matrices (F, 4, 4)`` at Blender ``frames``.
 
-    Writes whole F-curves with ``foreach_set`` (one call per channel, ~40x faster than
+    Writes whole F-curves with ``foreach_set`` (one call per channel, far faster than
     ``keyframe_insert``); existing curves are overwritten in place, so re-keying keeps the action.
     An action created here is recorded in ``made`` (the import's rollback record) when given.
     """

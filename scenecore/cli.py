@@ -15,8 +15,8 @@ def blas_on_one_thread() -> None:
 
     The toolkit's numpy work is small matrices (poses, rays of one view), which OpenBLAS threads do
     not speed up, yet after each call its idle threads spin in ``sched_yield`` for a while: on two
-    cores that took 42 s of CPU time from one demo evaluation's render threads (system time 63 s,
-    21 s on one thread; same figures). torch keeps its own thread pool. A value the user set wins.
+    cores that spinning takes CPU time from an evaluation's render threads, for the same results.
+    torch keeps its own thread pool. A value the user set wins.
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 

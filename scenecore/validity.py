@@ -234,8 +234,8 @@ def box_share(region: ValidRegion, box: np.ndarray, samples: int = 200_000, seed
 
 #: How far the "near" stratum reaches past the region's interval box: this many of the box's own
 #: widths on each side of every free axis (cut to the scale box). A learned set errs mostly just
-#: past the region's bounds; there the uniform points are too sparse (README's SfM demo: a few
-#: dozen of 200,000 in its excess, IoU 0.870 / 0.882 / 0.903 over three seeds of points).
+#: past the region's bounds; there the uniform points are too sparse: so few fall in a learned
+#: set's excess that its IoU would vary with the points' seed.
 NEAR_WIDTHS = 1.0
 
 

@@ -1,8 +1,8 @@
-"""Robustness, round 2: no silent NaN, degenerate scenes, extremes (docs/robustness.md).
+"""Robustness of the numerics: no silent NaN, degenerate scenes, extremes (docs/robustness.md).
 
-Each test here failed on main 066b1bc (the state the round was filed against) and names the
-hole it closes; `test_doc_table_names_real_tests` (tests/test_robustness.py) checks that every
-one of them is listed in docs/robustness.md.
+Each test here names the hole it closes (without the fix it guards, it fails);
+`test_doc_table_names_real_tests` (tests/test_robustness.py) checks that every one of them is
+listed in docs/robustness.md.
 """
 
 from __future__ import annotations
@@ -216,8 +216,8 @@ def _keep_frames(inputs, k: int, frames: list[int]) -> None:
 
 def test_object_posed_in_one_frame_only_draws_rays_there_and_trains(tiny_dataset: Path, tmp_path: Path) -> None:
     """SfM registered object 1 in frame 1 only, while its mask shows it in all three frames: rays
-    of frames 0 and 2 used to be drawn for it (no pose, so no gradient, only a constant error and,
-    in composite steps, a label no rendered object can match). Now they are left out, counted,
+    of frames 0 and 2 must not be drawn for it (no pose, so no gradient, only a constant error
+    and, in composite steps, a label no rendered object can match): they are left out, counted,
     and a short training on the object seen in one frame ends finite."""
     inputs = oracle_inputs(tiny_dataset)
     _keep_frames(inputs, 1, [1])
@@ -230,5 +230,5 @@ def test_object_posed_in_one_frame_only_draws_rays_there_and_trains(tiny_dataset
     assert st_.unposed_pixels == int(unposed.sum()) > 0
     assert st_.usable is not None and not torch.isin(torch.nonzero(unposed)[:, 0], st_.usable).any()
     run = train(tmp_path / "r", small_config(), inputs=inputs, progress=False)
-    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert all(torch.isfinite(v).all() for sd in state["fields"] for v in sd.values())

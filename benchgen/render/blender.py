@@ -49,8 +49,8 @@ BACKGROUND_DEPTH = 1e9
 #: makes the per-pixel bounds exact and tight for the colour too. Extra samples only repeat that
 #: ray, so 1 sample per pixel is exact; the price is aliasing (no anti-aliasing at silhouettes).
 PIXEL_FILTER_WIDTH = 0.01
-#: Fractal noise octaves above the base frequency (Blender's default detail is 2, the old value 8
-#: put the finest octave at 0.1 mm, far below a pixel): 3 octaves = features down to 1/8 of the
+#: Fractal noise octaves above the base frequency (Blender's default detail is 2; 8 would put the
+#: finest octave at 0.1 mm, far below a pixel): 3 octaves = features down to 1/8 of the
 #: base wavelength, about a pixel at 128 px for the presets' scales.
 TEXTURE_OCTAVES = 3.0
 
@@ -139,8 +139,8 @@ class Renderer:
         sc.render.resolution_x, sc.render.resolution_y = spec.width, spec.height
         sc.render.resolution_percentage = 100
         sc.render.dither_intensity = 0.0
-        # Keep Cycles' scene between renders: only what moved is re-synced (0.20 -> 0.05 s a 64 px
-        # frame when only the camera moves). Renders stay bit-identical to a fresh scene's
+        # Keep Cycles' scene between renders: only what moved is re-synced (a small frame where only
+        # the camera moves renders several times faster). Renders stay bit-identical to a fresh scene's
         # whatever was rendered before (tests/benchgen/test_render.py), so sharding still does
         # not change results.
         sc.render.use_persistent_data = True

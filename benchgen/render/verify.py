@@ -12,8 +12,8 @@ confirm that shading is local. Float
 rounding of a rescaled object's hit points is amplified by ``1 / cos`` of the incidence angle, so
 silhouettes and grazing hits (outside ``interior_mask``) get the pixel budget, not the 1e-4 limit.
 So do crease hits: where two parts of one object intersect, the normal is discontinuous and
-rounding picks the face (seen on gnome-house at 256 px: one ring-toy pixel at the seam of two tori,
-facing 0.30 in the base frame and 0.04 rescaled, colour off by 0.02 through the shading term).
+rounding picks the face (seen on gnome-house: a ring-toy pixel at the seam of two tori, whose
+facing, and through the shading term its colour, changed with the rescale).
 """
 
 from __future__ import annotations
@@ -30,18 +30,18 @@ TEST_MIN_DIFFERING_FRACTION = 0.98
 TEST_DEPTH_TOLERANCE = 1e-5
 #: Interior pixels see their surface at least this far from grazing (|cos| of the incidence
 #: angle; 0.2 = 78 degrees). Below it, float rounding of the hit point (amplified 5x or more)
-#: times the texture gradient can exceed 1e-4 with no change of visibility (measured on
-#: gnome-house at 128 px: 1.1e-4 at |cos| = 0.007 on the gnome); it removes ~0.1% of pixels.
+#: times the texture gradient can exceed 1e-4 with no change of visibility (seen on a nearly
+#: grazing hit on gnome-house's gnome); it removes few pixels.
 INTERIOR_MIN_FACING = 0.2
 #: A pixel whose ``facing`` changes by more than this between the base frame and a re-render hit
-#: a different face of a crease; elsewhere it changes by float rounding only (gnome-house 256 px:
-#: 99.99% of hit pixels below 3.3e-5, the crease pixel 0.26).
+#: a different face of a crease; elsewhere it changes by float rounding only, far below this,
+#: while a crease hit changes far above it.
 CREASE_FACING_CHANGE = 1e-3
 #: A texture discontinuity (a checker edge) between a pixel and a 4-neighbour of the same object
 #: is a colour jump above this (linear RGB, max over channels). A pixel centre that lands on such
-#: an edge can flip to the other side by float rounding of its hit point: gnome-house at 128 px,
-#: 3 of 50 configurations, one sofa pixel (0.71, 0.67, 0.50) -> (0.17, 0.46, 0.21), same id and
-#: facing. A *texture-edge flip* is a pixel whose re-render moved at least halfway to the colour of
+#: an edge can flip to the other side by float rounding of its hit point (seen on gnome-house: a
+#: sofa pixel took its neighbouring square's colour with the same id and facing). A
+#: *texture-edge flip* is a pixel whose re-render moved at least halfway to the colour of
 #: such a neighbour; it goes to the pixel budget, like a crease hit.
 TEXTURE_EDGE_JUMP = 0.1
 

@@ -25,7 +25,7 @@ SURFACE_SAMPLES = 3000
 REVOLVE_SECTIONS = 48
 #: Longest facet side along a revolved profile, in units of the spacing between sections. Thin
 #: facets cost exactness (see ``revolved_mesh``), many facets cost time: Cycles re-syncs every
-#: moved mesh on each render, and facets of aspect 1 made a gnome-house frame 3x slower.
+#: moved mesh on each render, and facets of aspect 1 make a gnome-house frame several times slower.
 MAX_FACET_ASPECT = 4.0
 
 

@@ -4,7 +4,7 @@ Pillow decodes 8-bit PNGs fast but silently reduces 16-bit RGB and RGBA to 8 bit
 files are decoded here: the IDAT stream is inflated with zlib and unfiltered (PNG filters None,
 Sub, Up, Average, Paeth) along anti-diagonals, so every step is one vectorised numpy operation
 over all rows (pixel (r, x) depends only on (r, x-1), (r-1, x) and (r-1, x-1)). Going to Pillow
-directly is also ~4x faster per small file than ``imageio.imread`` (format detection per call).
+directly is also several times faster per small file than ``imageio.imread`` (format detection per call).
 """
 
 from __future__ import annotations

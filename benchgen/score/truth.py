@@ -61,7 +61,7 @@ def configuration_masks(
 
 #: Ground-truth views :meth:`Truth.views` keeps in memory once read, when every configuration's
 #: fit in this many bytes: the scorer reads each configuration's views once per scored candidate
-#: set (``osn evaluate`` scores four), and on the demo those re-reads took 19 s under cProfile.
+#: set (``osn evaluate`` scores four), and those re-reads are a noticeable part of an evaluation.
 VIEWS_CACHE_BYTES = 256 * 2**20
 #: LPIPS features :meth:`Truth.lpips_features` keeps, when every configuration's fit in this many
 #: bytes (the demo's, counted from the feature shapes: 50 x 3.8 MB); larger images compute them again.

@@ -177,11 +177,10 @@ def stage_ground_truth(args: argparse.Namespace, p: DemoPaths) -> BackgroundComm
 
 
 #: ``--sfm-resolution auto`` with ``--inputs colmap``: the training video rendered again at this
-#: size (rounded up to a multiple of the benchmark's) for SfM. At 768 px every gnome-house object
-#: registers in at least 14 of 15 frames (the ring-toy's first frame is the one left; at 512 px
-#: its first three). Its valid set: IoU 0.852 +- 0.039 over three SfM seeds times three training
-#: seeds with the old final trim (0.002), 0.906 +- 0.014 with ``final_label_trim: auto`` (the same
-#: nine, full trainings), 0.923 on a fresh clone's demo (docs/training.md, docs/preprocess.md).
+#: size (rounded up to a multiple of the benchmark's) for SfM: large enough that SfM registers
+#: nearly every frame of every gnome-house object (smaller frames lose the ring-toy's first ones)
+#: and the valid set learned from it holds steady over SfM and training seeds (docs/preprocess.md;
+#: measurements in docs/experiments/).
 SFM_SIZE = 768
 
 
@@ -209,12 +208,11 @@ def stage_sfm_video(args: argparse.Namespace, p: DemoPaths, width: int) -> dict:
 
 
 #: The demo's SfM of the anchor runs on frames of at most this size (``--anchor-downscale auto``):
-#: the room fills the frame and registers within 0.1 degree at 512 px (docs/preprocess.md).
+#: the room fills the frame and registers as accurately at 512 px as above it (docs/preprocess.md).
 ANCHOR_SFM_SIZE = 512
 #: ``--crop-margin auto``: crops from this SfM resolution up, whole frames below (at 512 px crops
-#: moved the ring-toy's worst frame from 2.96 to 4.97 degrees; at 768 they register its frame 1,
-#: which whole frames do not; at 1024 they cost nothing and cut SfM from 377 to 231 s:
-#: docs/preprocess.md).
+#: worsen the ring-toy's worst frame; from 768 px they register frames that whole frames miss and
+#: shorten SfM at no cost in accuracy: docs/preprocess.md).
 CROP_FROM, CROP_MARGIN = 768, 32
 
 
@@ -272,11 +270,11 @@ def stage_train(args: argparse.Namespace, p: DemoPaths, cfg: Any, beside: Backgr
     """Train (or resume) on the chosen inputs, monitored against the dataset's exact region.
 
     If ``beside`` (the ground truth's rendering) runs when training starts, training uses one
-    intra-op thread to its end: with two threads it is only ~1.15x faster on two cores, its second
-    thread mostly spinning, and that core renders the ground truth instead. It does not go back to
+    intra-op thread to its end: with two threads it is only a little faster on two cores, its
+    second thread mostly spinning, and that core renders the ground truth instead. It does not go back to
     all threads when the ground truth ends: the trained fields and scale network depend on the
     thread count (reductions split differently; on the SfM demo two 1-thread trainings are bit for
-    bit equal, a 2-thread one is not), so a switch at a moment of the wall clock made each
+    bit equal, a 2-thread one is not), so a switch at a moment of the wall clock would make each
     run's result depend on the machine's speed (docs/training.md)."""
     resume = (p.run / "checkpoint.pt").exists()
     inputs = None if resume else load_inputs(p.sfm if args.inputs == "colmap" else p.oracle)
@@ -339,7 +337,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         Stage("generate", f"benchgen: render the {args.preset} training video, its exact region and configurations",
               partial(stage_generate, args, p), bench),
     ]
-    sfm_res = sfm_px if sfm_px > width else None  # recorded as older runs did: only a separate SfM video's
+    sfm_res = sfm_px if sfm_px > width else None  # recorded only for a separate SfM video, so existing runs still match
     if sfm_res:
         stages.append(Stage("sfm-video", f"benchgen: render the training video at {sfm_px} px for SfM",
                             partial(stage_sfm_video, args, p, sfm_px), {"preset": args.preset, "sfm_resolution": sfm_px}))
@@ -347,7 +345,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p),
               {k: v for k, v in (("sfm_resolution", sfm_res), ("anchor_downscale", args.anchor_downscale),
                                  ("crop_margin", args.crop_margin),
-                                 # since 2026-11-27: the fields learn the benchmark's frames, not SfM's averaged down
+                                 # the fields learn the benchmark's frames, not SfM's averaged down
                                  ("training_frames", "benchmark" if sfm_res else None)) if v not in (None, "auto")}),
         Stage("ground-truth", "benchgen: render every configuration's test views and verify them", start_ground_truth,
               bench, background=True),
@@ -409,7 +407,8 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
                    help="run SfM on the training video rendered again at this square size (a multiple of the "
                    "benchmark's), its poses and depths brought down to the benchmark's frames, which the fields learn: "
                    "SfM registers only the room at "
-                   f"64 px; auto: {SFM_SIZE} px with --inputs colmap (every gnome-house object in >= 14 of 15 frames), "
+                   f"64 px; auto: {SFM_SIZE} px with --inputs colmap (SfM registers nearly every frame of every "
+                   "gnome-house object), "
                    "the benchmark's own frames with --inputs oracle")
     p.add_argument("--anchor-downscale", default="auto",
                    help="SfM of the anchor (room) on the SfM video averaged down by this factor; auto: to at most "

@@ -152,7 +152,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="incremental mapping runs per object on the same matches, the best model kept (a small object "
                    "seen nearly in weak perspective has a depth-reversed twin that one run can settle in)")
     p.add_argument("--anchor-mapper-restarts", type=int, default=PreprocessConfig.anchor_mapper_restarts,
-                   help="the same for the anchor (one run is 40 s shorter on the demo but its valid set spread wider)")
+                   help="the same for the anchor (a single run is shorter, but the valid set learned from its model spreads "
+                   "wider over seeds)")
     p.add_argument("--crop-margin", type=int, default=PreprocessConfig.crop_margin,
                    help="SIFT sees the frames cropped to the box of the object's masks over the video, grown by this "
                    "many pixels (-1: whole frames); SIFT costs every pixel it is given")

@@ -97,7 +97,7 @@ def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Te
     W axis, ``align_corners=True``) at points ``xn (N, 3)`` in [-1, 1]; returns ``(N, C)``.
 
     One gather of the 8 corners instead of ``grid_sample``: on CPU ``grid_sample``'s backward
-    is ~3x slower than the single ``index_add`` this gather back-propagates through.
+    is several times slower than the single ``index_add`` this gather back-propagates through.
     """
     r = resolution
     p = (xn.clamp(-1.0, 1.0) + 1.0) * (0.5 * (r - 1))
@@ -120,8 +120,8 @@ def trilinear_frozen(grid_cf: torch.Tensor, xn: torch.Tensor) -> torch.Tensor:
     """:func:`trilinear` for a grid no gradient flows to: ``grid_cf (1, C, R, R, R)`` channels first
     (``(R^3, C)``'s transpose, z slowest) at ``xn (N, 3)`` in [-1, 1]; returns ``(N, C)``.
 
-    ``grid_sample``'s forward is one fused kernel: on CPU 2.6-4.5x faster than the gather for
-    one channel (density, the pass every sample takes). Equal to :func:`trilinear` to float
+    ``grid_sample``'s forward is one fused kernel: on CPU several times faster than the gather
+    for one channel (density, the pass every sample takes). Equal to :func:`trilinear` to float
     rounding (points outside the box are clamped to it by both).
     """
     n = xn.shape[0]
@@ -405,7 +405,7 @@ class FieldConfig:
 
 def saved_plane_size(state: dict[str, Any]) -> int:
     """Texels per side of the colour planes a field's ``state_dict`` holds (0: none), so a
-    checkpoint's field is rebuilt as it trained whatever ``anchor_planes: auto`` gives today."""
+    checkpoint's field is rebuilt as it trained, whatever ``anchor_planes: auto`` would give now."""
     return int(round((state["planes"].shape[0] / 3) ** 0.5)) if "planes" in state else 0
 
 

@@ -4,7 +4,7 @@ A trained run's renders are small ops (a view's samples, one field lookup at a t
 torch's intra-op pool barely speeds up: on two cores a view renders no faster with two intra-op
 threads than with one. Rendering *views* on separate Python threads (torch releases the GIL
 inside its ops), each op on one thread, keeps every core busy instead
-(``benchmarks/bench_render_threads.py``: 2.0x on two cores). Every view is computed on one thread
+(``benchmarks/bench_render_threads.py`` measures it). Every view is computed on one thread
 whatever the number of workers, so results do not depend on it.
 """
 

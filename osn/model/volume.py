@@ -155,8 +155,8 @@ def guided_positions(field: Field, o: torch.Tensor, v: torch.Tensor, ok: torch.T
     whole interval, so ``x`` in [0, 1]) give each ray a piecewise-constant density of positions:
     :data:`GUIDE_EVEN_SHARE` even, the rest proportional to the object's weights. The strata are
     this density's quantiles ``[i/S, (i+1)/S]`` and ``u (R, S)`` (in [0, 1)) places one sample in
-    each, so ``sum dx = 1`` and an even density gives the even stratified samples back. The SfM
-    demo's room box sampled evenly puts its 48 samples about 27 cm apart at the median depth: a
+    each, so ``sum dx = 1`` and an even density gives the even stratified samples back. A box as
+    deep as a room, sampled evenly, puts its samples far apart at the depths it is seen from: a
     surface then has to spread over a step to be seen at every jitter (docs/training.md). Rays without a
     finite weight (missed, or a non-finite density, which the render's own samples then meet)
     are sampled evenly.
@@ -171,7 +171,7 @@ def guided_positions(field: Field, o: torch.Tensor, v: torch.Tensor, ok: torch.T
     w, _ = transmittance_weights(sig * (v.norm(dim=-1) / m)[:, None])
     # Each bin also takes its neighbours' weight (Mip-NeRF's max filter): an opaque surface's
     # weight lies in the bin where it starts, and the samples must also cover the bin behind it,
-    # where its optical depth is still growing (without, 3% of its opacity leaks through).
+    # where its optical depth is still growing (without, part of its opacity leaks through).
     w = torch.nn.functional.max_pool1d(w[:, None], 3, stride=1, padding=1)[:, 0]
     total = w.sum(1, keepdim=True)
     weighted = ok[:, None] & torch.isfinite(total) & (total > 0)
@@ -215,7 +215,7 @@ def _object_samples(
         x, dx = guided_positions(obj.field, o + t0[:, None] * v, span * v, ok, u, obj.guide)
         t = t0[:, None] + span * x
         delta_len = span * dx * vnorm
-    else:  # even strata (the arithmetic of every run before the guide: bit for bit)
+    else:  # even strata: the same arithmetic as a run trained without the guide, bit for bit
         t = t0[:, None] + span * ((torch.arange(n_samples, device=dirs_cam.device) + u) / n_samples)
         delta_len = (span / n_samples * vnorm).expand(R, n_samples)
     pts = o[:, None, :] + t[..., None] * v[:, None, :]
@@ -450,9 +450,9 @@ def render_by_hits(
     hits only: rays are grouped by the set of objects whose box they cross, and each group is
     rendered with that set. An object a ray misses adds only samples at ``+inf`` with no density,
     which sort behind the others and add zeros to every sum, so the colour, opacity and depth are
-    those of :func:`render` to float rounding (sums over fewer terms; on the demo colour within
-    3e-5, where a sample's transmittance rounds across ``skip_occluded``, opacity and depth within
-    5e-7; bit for bit for one object alone), at a cost that follows the
+    those of :func:`render` to float rounding (sums over fewer terms; colour differs most where a
+    sample's transmittance rounds across ``skip_occluded``; bit for bit for one object alone), at
+    a cost that follows the
     samples that can contribute: a small object alone in a view covers a few per cent of the rays,
     and most rays of a composite hit the anchor alone.
 
@@ -462,7 +462,7 @@ def render_by_hits(
     hits nothing gets the background, opacity and depth 0. Rays that hit a single
     :class:`ShadedSamples` object (the anchor alone, most rays of a candidate configuration) take
     its :meth:`ShadedSamples.alone` render, made once for every configuration rendered with it
-    (``reuse_alone=False`` renders them again each time, as before 2026-11-27: for benchmarks).
+    (``reuse_alone=False`` renders them again each time: the baseline that benchmarks compare with).
     """
     R, K = dirs_cam.shape[0], len(objects)
     dev = dirs_cam.device
@@ -474,7 +474,7 @@ def render_by_hits(
     if K == 0 or R == 0:
         return RenderOutput(rgb=rgb, depth=depth, acc=acc, log_seg=log_seg)
     hits = torch.stack([object_hits(obj, dirs_cam) for obj in objects], 1)  # (R, K)
-    if K < 63:  # each ray's set of objects as one integer: unique over rows is ~50x slower
+    if K < 63:  # each ray's set of objects as one integer: unique over rows is much slower
         sets, group = torch.unique((hits.long() << torch.arange(K, device=dev)).sum(1), return_inverse=True)
         members = [[k for k in range(K) if c >> k & 1] for c in sets.tolist()]
     else:

@@ -32,8 +32,8 @@ def align_to_ground_truth(
     the SfM camera poses (object frame) onto the ground-truth ones
     (:func:`scenecore.cameras.fit_pose_similarity`); rotation and camera-centre errors are
     measured after it. Its scale is not used as the unit: least squares on noisy camera centres
-    shrinks it (on the tests' 128 px scene the block's came out 0.41 of the truth, which skewed
-    every scale-based evaluation figure); its ratio to the depth unit is reported
+    shrinks it (on the tests' 128 px scene the block's came out well under half the truth, which
+    skews every scale-based evaluation figure); its ratio to the depth unit is reported
     (``similarity_unit_ratio``). An object whose similarity cannot be fitted still gets its unit.
     """
     for o, rep in zip(inputs.objects, [r for r in report.objects if "error" not in r]):
@@ -119,8 +119,8 @@ def depth_unit(obj: ObjectInputs, depths: np.ndarray) -> float | None:
 
 def sparse_depth_outliers(obj: ObjectInputs, depths: np.ndarray, tolerance: float = 0.1) -> float | None:
     """Share of the object's sparse depths more than ``tolerance`` (relative) off the ground truth
-    once in metres (``obj.unit_to_world``): SfM's phantom points, e.g. 22% of the gnome-house
-    room's at 512 px, on its checker floor (docs/preprocess.md). None without a unit or a point."""
+    once in metres (``obj.unit_to_world``): SfM's phantom points, e.g. on the gnome-house room's
+    checker floor (docs/preprocess.md). None without a unit or a point."""
     ratio = _truth_over_sparse(obj, depths)
     if obj.unit_to_world is None or not len(ratio):
         return None

@@ -1,17 +1,17 @@
 """SfM depths that would hide what the other frames saw: a phantom count that needs no ground truth.
 
-Repeated texture lets SfM triangulate points one period off (on gnome-house at 512 px a fifth of
-the room's depths lie on a phantom floor at 0.5-0.6 of the true depth). Such a point fits the
+Repeated texture lets SfM triangulate points one period off (on gnome-house's checker floor many
+of the room's depths lie on a phantom floor well in front of the true one). Such a point fits the
 frames it was matched in, but projected into the object's other frames it lands *in front of*
 the depths those frames observed there: were it real, it would hide what SfM saw. ``osn
 preprocess`` reports per object how many depths do so in at least half of the frames that can
 test them (:func:`occluding_flags`, ``occluding_depths`` in ``preprocess_report.json``): the
-only phantom figure a video without ground truth has. On that gnome-house video it flags 14.5%
-of the room's depths (ground truth: 22.1% are more than 10% off) and 2.1% of the sofa's (3.4%),
-and of the room's gross phantoms (below half the true depth) 2714 of 2942, against 2 of its
-24046 good depths. ``osn preprocess`` drops the flagged depths of every object but the anchor
-before normalising it (``drop_occluding: objects``): the sofa's 1.4% phantoms had set its near
-plane and box; dropping the room's as well made the valid set worse (docs/preprocess.md).
+only phantom figure a video without ground truth has. On gnome-house it flags most of the
+room's gross phantoms (below half the true depth) and almost none of its good depths
+(measurements in docs/experiments/). ``osn preprocess`` drops the flagged depths of every object
+but the anchor before normalising it (``drop_occluding: objects``): a small object's few
+phantoms would set its near plane and box; dropping the room's as well makes the valid set
+worse (docs/preprocess.md).
 
 Pure numpy on one object's observations in its own frame and unit; nothing here reads ground truth.
 """
@@ -28,8 +28,8 @@ MARGIN = 0.15
 VOTE = 0.5
 
 #: Side of the pixel blocks whose median observed depth a projection is compared with, as a
-#: fraction of the frame's larger side: SfM's depths cover well under 1% of the pixels, and 1%
-#: blocks left 39% of the gnome-house room's gross phantoms (512 px) uncounted, 3% blocks 8%.
+#: fraction of the frame's larger side: SfM's depths cover well under 1% of the pixels, so smaller
+#: blocks often hold no observed depth and leave many of the room's gross phantoms uncounted.
 CELL_FRACTION = 0.03
 
 

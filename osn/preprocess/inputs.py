@@ -324,9 +324,9 @@ def with_video(inputs: SceneInputs, images: np.ndarray, masks: np.ndarray, where
     """The same inputs on another rendering of their video, of the same size: ``images (T, H, W,
     3)`` uint8 and instance-id ``masks (T, H, W)``. SfM may run on the video rendered larger (small
     objects register only there), but the fields must learn the video a method is given: the
-    benchmark's own frames, which the evaluation's ground truth was rendered like (the demo's
-    768 px video averaged down to 64 px is 27.5 dB from them: area averages, where the benchmark
-    renders each pixel's centre ray; docs/preprocess.md). Poses, sparse depths, ranges and boxes are kept; objects
+    benchmark's own frames, which the evaluation's ground truth was rendered like (a larger video
+    averaged down differs from them: area averages, where the benchmark renders each pixel's
+    centre ray; docs/preprocess.md). Poses, sparse depths, ranges and boxes are kept; objects
     preprocessing dropped stay ignored (``IGNORE_ID``). Raises ``InputsError`` naming ``where``
     when the sizes differ or an object no longer covers a pixel where it has a pose.
     """
@@ -363,9 +363,9 @@ def downscale_video(images: np.ndarray, masks: np.ndarray, K: np.ndarray, factor
 
 def auto_points_per_frame(width: int, height: int) -> int:
     """Sparse depths per object and frame that training gets by default (``points_per_frame: 0``
-    of the oracle and of SfM): a sixteenth of the frame's pixels, at least 256. The valid set
-    learned on gnome-house at 128 px rose from IoU 0.878 +- 0.020 with 256 oracle depths to
-    0.927 +- 0.015 with 1024 (three seeds); the 64 px demo keeps 256 (docs/preprocess.md)."""
+    of the oracle and of SfM): a sixteenth of the frame's pixels, at least 256. Larger frames get
+    more depths because the valid set learned from them improves with the count; the 64 px demo
+    keeps 256 (measurements in docs/experiments/)."""
     return max(256, (width * height) // 16)
 
 
@@ -374,9 +374,9 @@ def subsample_sparse_depths(inputs: SceneInputs, per_frame: int = 0, seed: int =
     :func:`auto_points_per_frame` of the inputs' frames), chosen uniformly at random.
 
     Field steps draw their depth rays from all objects' depths at once, so an object's share of
-    the depth supervision is its share of the depths. SfM gives a textured room ~2000 per 64 px
-    frame and a small object ~200 (the oracle: at most 256 each); capping SfM's at the oracle's
-    count raised the SfM demo's valid-set IoU from 0.806 +- 0.029 to 0.842 +- 0.020
+    the depth supervision is its share of the depths. SfM gives a textured room many times the
+    depths of a small object (the oracle: at most 256 each); capping SfM's at the oracle's count
+    keeps the small objects' share and so their contacts, which raises the valid set's IoU
     (docs/preprocess.md). Poses, ranges and boxes are kept: they were set from every depth.
     One generator over the objects in order; a frame with fewer depths keeps them all.
     """

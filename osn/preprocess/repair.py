@@ -1,10 +1,10 @@
 """Registered frames whose SfM pose contradicts their own verified matches: find, re-pose or drop.
 
 COLMAP's mapper can leave a frame at a pose that almost none of its two-view-verified matches
-agree with. Seen on gnome-house at 1024 px: the room's frame 14 ended 75 degrees off, with 1.6%
-of its 12638 verified matches within 1 px of the model's epipolar geometry, against 54-84% for
-every other frame. One such pose is worse than a missing one: it also tilts every similarity
-fitted to the trajectory (evaluation read the room's other 14 frames 4 degrees off).
+agree with (seen on gnome-house at 1024 px: one of the room's frames far off, almost none of
+its verified matches near the model's epipolar geometry while every other frame kept most of
+its own). One such pose is worse than a missing one: it also tilts every similarity fitted to
+the trajectory, so evaluation reads the object's other frames off too.
 
 The check needs no ground truth: for every pair of registered frames with verified matches, the
 Sampson distance of each match under the *model's* relative pose. A frame whose matches mostly
@@ -13,8 +13,8 @@ that pass the check, its observations replaced by the PnP inliers and the model 
 if that fails too, the frame is dropped. Frames that pass are only bundle-adjusted again.
 
 What it cannot see: an error that moves points along their epipolar lines (a camera moving
-sideways, turned about its vertical axis; the tests' 20-degree turn about the optical axis drops
-a frame from 100% to 4%, the same turn about the vertical axis only to 24%), and a whole model
+sideways, turned about its vertical axis; in the tests a turn about the optical axis drops a
+frame's consistency nearly to zero, the same turn about the vertical axis far less), and a whole model
 that is consistently wrong (a reversed twin, :func:`osn.preprocess.sfm._best_of_restarts`).
 """
 

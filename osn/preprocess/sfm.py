@@ -46,16 +46,17 @@ class PreprocessConfig:
             averaged down by this factor (its sparse pixels mapped back to the blocks' centres);
             1 = full frames. Small objects need large frames, the anchor does not: gnome-house's
             room at 1024 px, upsampled like the objects, is 4x the pixels of 512 px. Which room
-            SfM trains the best valid set is not settled (docs/preprocess.md, "SfM at 1024 px").
+            SfM trains the best valid set is not settled (measurements in docs/experiments/).
         crop_margin: SIFT sees the frames cropped to the box of the object's masks over the video,
             grown by this many pixels and to hold the principal point (-1: whole frames). SIFT
-            runs on every pixel it is given, however little of it the mask keeps: a small
-            object's whole frames at 1024 px, upsampled, cost 53 s of SIFT for 15 frames, most of
-            it outside the object. It changes which features SIFT finds near the crop's border
-            (gnome-house at 512 px: the ring-toy's worst frame 5.0 degrees instead of 3.0), so it
-            is off by default; at 1024 px it registered what whole frames do (docs/preprocess.md).
-        guided_matching: re-match each verified pair under its two-view geometry. On gnome-house
-            at 256 px it cut the sofa's worst rotation error from 11.5 to 1.3 degrees.
+            runs on every pixel it is given, however little of it the mask keeps: on a small
+            object's whole frames, upsampled, most of SIFT's time goes outside the object. It
+            changes which features SIFT finds near the crop's border (at 512 px it worsened the
+            gnome-house ring-toy's worst frame), so it is off by default; at 1024 px it registers
+            what whole frames do (docs/preprocess.md).
+        guided_matching: re-match each verified pair under its two-view geometry: it removes the
+            wrong matches that otherwise leave a small object's worst frames far off in rotation
+            (gnome-house's sofa).
         grey: what SIFT sees: ``luminance`` (COLMAP's conversion), ``principal`` (the object's
             principal colour axis, :func:`principal_grey`) or ``auto`` (principal only when the
             object's colours differ mostly in hue).
@@ -73,9 +74,9 @@ class PreprocessConfig:
         scene_near_factor, scene_far_factor, box_padding: as in the oracle (shared normalisation).
         drop_occluding: whose sparse depths :func:`osn.preprocess.freespace.occluding_flags`
             flags are dropped before normalising: ``objects`` (every object but the anchor),
-            ``all`` or ``none``. SfM's phantoms on the sofa (1.4% of its depths at under 0.6 of the
-            true depth) set its near plane and box; dropping the room's too (the anchor, whose near
-            plane sets Eq. 1's scene volume) made the valid set worse (docs/preprocess.md).
+            ``all`` or ``none``. A few phantom depths on a small object (gnome-house's sofa) set its
+            near plane and box; dropping the room's too (the anchor, whose near
+            plane sets Eq. 1's scene volume) makes the valid set worse (docs/preprocess.md).
         points_per_frame: sparse depths per object and frame kept for training, at the training
             resolution (after any downscale), chosen at random with ``seed``; 0 = as the oracle
             (:func:`osn.preprocess.inputs.auto_points_per_frame`). Near, far and boxes use all.
@@ -83,17 +84,17 @@ class PreprocessConfig:
         mapper_restarts: incremental mapping runs on the same matches; the best one is kept
             (:func:`_best_of_restarts` explains why a single run is not enough).
         anchor_mapper_restarts: the same for the anchor. It fills the frame, so it has no
-            depth-reversed twin, and its four runs on gnome-house at 768 px found models equal in
-            frames and error to 0.001 px; yet mapped once, the demo's valid set came out 0.875 +-
-            0.039 against 0.899 +- 0.012 (six full trainings each) and the stage only 40 s shorter,
-            so it keeps four (docs/preprocess.md, "The anchor mapped once").
+            depth-reversed twin, and its restarts find models that agree in frames and error; yet
+            the valid set trained from a single run spreads wider over training seeds, for little
+            time saved, so it keeps four (measurements in docs/experiments/).
         min_epipolar_consistency: a registered frame with a smaller fraction of its verified
             matches within ``2 * epipolar_error`` of the model's epipolar geometry is re-posed
-            or dropped (:mod:`osn.preprocess.repair`; correct frames measured 0.54-1.00, a wrong one 0.016).
+            or dropped (:mod:`osn.preprocess.repair`; correct frames lie far above the threshold, a
+            wrong one far below it).
         final_cauchy_px: scale (input-frame pixels) of the Cauchy loss of a last global bundle
             adjustment; 0 skips it. COLMAP's own global BA uses a squared loss, which lets the
-            few bad observations of a weakly seen frame pull it (ring-toy at 1024 px, frame 0:
-            4.7 degrees before, 2.9 after; 1 px: 4.5, 2 px: 5.2; docs/preprocess.md).
+            few bad observations of a weakly seen frame pull it (the gnome-house ring-toy's first
+            frame at 1024 px); the default scale corrects it best of those tried (docs/preprocess.md).
     """
 
     matcher: str = "auto"
@@ -361,10 +362,9 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
 
     A small object seen nearly in weak perspective has a depth-reversed twin: the mapper can
     settle in either, and the reversed one turns its rotations the wrong way, by an error that
-    grows along the video (gnome-house sofa at 256 px: 17 degrees). Under full perspective the
-    twin fits worse, so among the restarts the one registering the most frames with the lowest
-    mean reprojection error wins (same sofa, 6 seeds: 0.75 px in the 2x-upsampled images and 2.5
-    degrees for the true one against 0.84-0.87 px and 17 degrees for the five reversed ones).
+    grows along the video (gnome-house's sofa). Under full perspective the twin fits worse, so
+    among the restarts the one registering the most frames with the lowest mean reprojection
+    error wins (on that sofa the true model's error is below every reversed one's).
 
     Each run is single-threaded with its own options and seed, and COLMAP's random generator is
     per thread, so runs side by side give the models they give one after the other (the demo's
@@ -377,7 +377,7 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
         opts.random_seed = opts.mapper.random_seed = cfg.seed + k
         (out_dir / str(k)).mkdir()
         # Side by side, each run reads its own copy: two mappers opening one database failed now
-        # and then ("No registered database factory succeeded", CI-like run of 2ed5d1b).
+        # and then ("No registered database factory succeeded").
         own = db if workers <= 1 else Path(shutil.copy(db, out_dir / str(k) / "database.db"))
         return pycolmap.incremental_mapping(own, img_dir, out_dir / str(k), options=opts)
 

@@ -17,8 +17,8 @@ def upscale(image: np.ndarray, factor: int, order: int = 3) -> np.ndarray:
 
     SIFT finds few features on objects of ~30 pixels; a blocky (nearest) image gives fewer still.
     The result equals ``resize(image, ..., order=order, preserve_range=True, anti_aliasing=False)``
-    rounded to uint8 bit for bit (tested), 5x faster: that resize runs its spline along the colour
-    axis too, which cost 5 s per 1024 px frame, about half of a small object's SfM.
+    rounded to uint8 bit for bit (tested), and is faster: that resize runs its spline along the
+    colour axis too, which on large frames costs a large part of a small object's SfM.
     """
     if factor == 1:
         return image

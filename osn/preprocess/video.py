@@ -108,8 +108,8 @@ def reconstruct_objects(
     workers: int = 1,
 ) -> dict[int, ObjectSfM | ObjectRegistrationError]:
     """Each object's SfM (:func:`reconstruct_object`), ``workers`` objects at once on threads, and
-    each object's mapper restarts ``workers`` at once (the demo's room: four runs, 99 s of its
-    303 s alone, while the objects beside it end early); ``object id -> ObjectSfM``, or the
+    each object's mapper restarts ``workers`` at once (the room's restarts would otherwise run
+    alone, one after another, once the objects beside it end); ``object id -> ObjectSfM``, or the
     error of an object that failed to register.
 
     The anchor is reconstructed at ``cfg.anchor_downscale`` (its sparse pixels mapped back to the

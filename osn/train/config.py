@@ -78,9 +78,10 @@ W_EDGE_SFM = 1.0
 
 def resolve_w_edge(value: float | str, source: str) -> float:
     """The silhouette-depth term's weight for inputs from ``source``: ``auto`` is off on the
-    oracle's (there it cost the demo's valid set 0.03 IoU over four seeds) and :data:`W_EDGE_SFM` on
-    anything else, where the objects' fields read their silhouettes too far and cut the contact
-    bounds tight (SfM 512 px: recall 0.93 -> 0.97; 1024 px: IoU +0.06)."""
+    oracle's, whose exact silhouettes need no correction (there the term lowers the valid set's
+    IoU), and :data:`W_EDGE_SFM` on anything else, where the objects' fields read their silhouettes
+    too far and cut the contact bounds tight; the term restores their recall (measurements in
+    docs/experiments/)."""
     return by_source(value, source, 0.0, W_EDGE_SFM)
 
 
@@ -91,10 +92,9 @@ W_HIDDEN_SMOOTH_ORACLE = 0.3
 
 def resolve_w_hidden_smooth(value: float | str, source: str) -> float:
     """The hidden-anchor term's weight for inputs from ``source``: ``auto`` is
-    :data:`W_HIDDEN_SMOOTH_ORACLE` on the oracle's (the demo's valid set 0.882 -> 0.925 over five
-    seeds, gnome-house at 128 px and the suite's boards measured too) and off on anything else,
-    where the one seed measured on the SfM demo lost 0.021 (docs/training.md, "The anchor behind
-    the objects")."""
+    :data:`W_HIDDEN_SMOOTH_ORACLE` on the oracle's, where it raises the valid set's IoU and
+    narrows its spread over seeds, and off on anything else, where it did not help on SfM's
+    inputs (measurements in docs/experiments/)."""
     return by_source(value, source, W_HIDDEN_SMOOTH_ORACLE, 0.0)
 
 
@@ -104,29 +104,24 @@ ANCHOR_COVERAGE_SFM, ANCHOR_COVERAGE_ORACLE = 0.5, 0.9
 
 def resolve_anchor_coverage(value: float | str, source: str) -> float:
     """The opacity above which the anchor covers a label ray, for inputs from ``source``: ``auto``
-    is :data:`ANCHOR_COVERAGE_SFM` on SfM inputs (there the room behind the gnome's feet stayed
-    below 0.9 and the pool lost the gnome's contact rays: the demo's valid set +0.027 IoU over six
-    seeds) and the objects' 0.9 on the oracle's (0.5 cost it 0.035 over three; docs/training.md,
-    "The anchor's coverage")."""
+    is :data:`ANCHOR_COVERAGE_SFM` on SfM inputs (there the room behind an object's contact stays
+    below 0.9 and the pool would lose that object's contact rays) and the objects' 0.9 on the
+    oracle's, where 0.5 lowers the valid set's IoU (measurements in docs/experiments/)."""
     return by_source(value, source, ANCHOR_COVERAGE_ORACLE, ANCHOR_COVERAGE_SFM)
 
 
-#: ``final_label_trim: auto`` on the oracle's inputs and on anything else (docs/training.md, "The final
-#: phase's trim on SfM inputs").
+#: ``final_label_trim: auto`` on the oracle's inputs and on anything else (see
+#: :func:`resolve_final_label_trim`).
 FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM = 0.002, 0.003
 
 
 def resolve_final_label_trim(value: float | str, source: str) -> float:
     """The share of a pair's rays a valid sample may violate in the final scale phase, for inputs
     from ``source``: ``auto`` is :data:`FINAL_LABEL_TRIM_ORACLE` on the oracle's exact contacts
-    (looser cost the demo's valid set: 0.888 -> 0.771 at 0.01) and :data:`FINAL_LABEL_TRIM_SFM` on
+    (a looser trim accepts samples past the region's bounds) and :data:`FINAL_LABEL_TRIM_SFM` on
     anything else, where a few contact rays of each pair are off and the oracle's trim cuts into
-    the region. It was the rounds' 0.01, chosen on the fields of 2026-11-27 (before per-object
-    grids, the room's planes and guided samples). On eleven SfM runs of the demo and gnome-house
-    at 128 px (2026-11-28) the final fields' labels at 0.01 reached 4-11% of the region's volume
-    past the objects' bounds against the room (the labelled set's IoU 0.870 on average, lowest
-    0.834); at 0.003 0.923, lowest 0.892 (docs/training.md, "The final phase's trim on SfM inputs,
-    measured again")."""
+    the region, while the rounds' looser trim lets the final fields' labels reach past the
+    objects' bounds against the room (measurements in docs/experiments/)."""
     return by_source(value, source, FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM)
 
 
@@ -138,13 +133,10 @@ ANCHOR_GUIDE_SAMPLES = 64
 def resolve_anchor_guide_samples(value: int | str, fcfg: FieldConfig, inputs: SceneInputs) -> int:
     """The anchor's guide samples (0: even samples): ``auto`` is :data:`ANCHOR_GUIDE_SAMPLES`
     unless the anchor's box spans no more pixels than its grid has voxels (:func:`anchor_pixels`;
-    without sparse depths it is on). On the SfM demo the room's samples found its surfaces:
-    best of 1000 +0.29 dB, the margin over the highest score +0.20 dB and the valid set +0.019 IoU
-    over three seeds at no measurable cost; on the oracle's inputs, with the room's colour planes,
-    the demo's valid set 0.862 +- 0.042 -> 0.893 +- 0.009 over five seeds and gnome-house's at
-    128 px 0.912 -> 0.930 over three. On the tiny test scene (its room 52 px across at 32 px, under
-    its 64 voxels) it cost recall: 0.90 -> 0.75 (docs/training.md, "One rule for the room's options
-    on every input")."""
+    without sparse depths it is on). Where the room's grid is coarser than the pixels that see
+    it, even samples miss its surfaces and the guide finds them, for best of N and the valid set
+    alike, on SfM's inputs and the oracle's; where the grid already has a voxel per pixel (the
+    tiny test scene) the guide only costs recall (measurements in docs/experiments/)."""
     if value != "auto":
         return int(value)
     n = anchor_pixels(inputs)
@@ -152,9 +144,10 @@ def resolve_anchor_guide_samples(value: int | str, fcfg: FieldConfig, inputs: Sc
 
 
 def checkpoint_anchor_guide_samples(ckpt: dict[str, Any], source: str) -> int:
-    """The anchor's guide samples a checkpoint's training used (its ``anchor_guide``). One written
-    before 2026-11-28 (late) does not say: its config's ``auto`` then meant
-    :data:`ANCHOR_GUIDE_SAMPLES` on SfM inputs and 0 on the oracle's (no key: before the option, 0)."""
+    """The anchor's guide samples a checkpoint's training used (its ``anchor_guide``). A checkpoint
+    without that key does not say: its config's ``auto`` meant :data:`ANCHOR_GUIDE_SAMPLES` on SfM
+    inputs and 0 on the oracle's, and a config without ``anchor_guide_samples`` trained without
+    the guide (0)."""
     if "anchor_guide" in ckpt:
         return int(ckpt["anchor_guide"])
     return int(by_source(ckpt["config"].get("anchor_guide_samples", 0), source, 0, ANCHOR_GUIDE_SAMPLES))
@@ -162,7 +155,7 @@ def checkpoint_anchor_guide_samples(ckpt: dict[str, Any], source: str) -> int:
 
 def resolve_depth_robust(value: float | str, source: str) -> float:
     """The sparse-depth loss's robustness for inputs from ``source``: ``auto`` is the squared
-    error on the oracle's exact depths (robust there it cost the demo's valid set 0.035 IoU) and
+    error on the oracle's exact depths (a robust loss there lowers the valid set's IoU) and
     :data:`DEPTH_ROBUST_SFM` on anything else, whose depths hold SfM's phantom points."""
     return by_source(value, source, 0.0, DEPTH_ROBUST_SFM)
 
@@ -299,11 +292,10 @@ def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs) -> list[list[int]
     """Per object position its fields' resolution schedule (:meth:`FieldConfig.resolutions`): the
     anchor's ends at ``field.resolution``, every other object's at ``field.object_resolution``
     (0: ``resolution``; never above it). ``auto``: :func:`footprint_resolution` on SfM inputs (or
-    a user's video), where the demo's objects at 64^3 had voxels of 0.3-0.5 px and coarser ones
-    gained their test pixels up to 1.8 dB and the margin of best of N 0.26 dB over three seeds
-    (as the layered search of 2026-11-27 measured it);
-    ``resolution`` on the oracle's, whose exact contacts lost recall with them (valid-set IoU
-    0.934 -> 0.872, one seed; docs/training.md)."""
+    a user's video), where a small object's voxels at ``resolution`` are a fraction of a pixel
+    and coarser ones, a voxel per pixel, render its test pixels and best of N better;
+    ``resolution`` on the oracle's, whose exact contacts lose recall on coarser grids
+    (measurements in docs/experiments/)."""
     out = []
     for k, o in enumerate(inputs.objects):
         final = fcfg.resolution
@@ -337,14 +329,10 @@ def anchor_plane_size(fcfg: FieldConfig, inputs: SceneInputs) -> int:
     """Texels per side of the anchor's colour planes (0: none; dense fields only). ``auto``: about
     one texel per pixel where the anchor's surfaces are (:func:`anchor_pixels`), within
     [:data:`MIN_ANCHOR_PLANES`, :data:`MAX_ANCHOR_PLANES`]; 0 where that is no more than the
-    anchor's grid resolution (the grid holds as much) or the anchor has no sparse depth. The SfM
-    demo: 255 texels; there best of 1000 gained 0.5 dB on each of three seeds (the search of
-    2026-11-27). The oracle's demo: 105, gnome-house at 128 px 213 (with the guide: the valid set
-    +0.031 IoU over five seeds / +0.018 over three); the tiny test scene: 52, none (its best of 60
-    lost 0.5 dB with them). On gnome-house at 128 px from SfM (397 texels) the valid set lost 0.015 IoU on
-    average over three seeds with all three options (the final trim of then, 1%; at today's 0.3%
-    their final labels lose 0.008) and training took 1.3x as long; one seed points at the planes
-    (docs/training.md)."""
+    anchor's grid resolution (the grid holds as much) or the anchor has no sparse depth. The
+    planes give the room's colour the detail its grid cannot hold where the room spans more pixels
+    than the grid has voxels; below that they only add parameters to fit (measurements in
+    docs/experiments/)."""
     if fcfg.kind != "dense" or fcfg.anchor_planes == 0:
         return 0
     if fcfg.anchor_planes != "auto":

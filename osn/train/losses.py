@@ -19,13 +19,13 @@ def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float =
     ``k`` times the batch's median absolute residual ``r`` (not differentiated): the squared error
     while the field is far from every depth (early: all residuals large), and a bounded pull from
     the few depths far from the rest once it fits them. SfM gives such depths on repeated texture
-    (gnome-house's checker floor at 512 px: 22% of the room's sparse depths near half the true
-    depth, docs/preprocess.md), and a squared error moves the surface toward them.
+    (gnome-house's checker floor: many of the room's sparse depths near half the true depth,
+    docs/preprocess.md), and a squared error moves the surface toward them.
     """
     if not target.numel():
         return depth.sum() * 0.0
     if robust <= 0:
-        return F.mse_loss(depth, target)  # the form every earlier run trained with, bit for bit
+        return F.mse_loss(depth, target)  # the plain squared error, bit for bit
     r2 = (depth - target).square()
     # Floored so a batch that fits exactly (median residual 0) stays finite: log1p(0 / tiny) = 0.
     c2 = (robust * robust * r2.detach().median()).clamp_min(1e-12)
@@ -41,7 +41,8 @@ def before_depth_opacity(rays: ObjectRays, dirs: torch.Tensor, depth: torch.Tens
     The sparse depth says the ray is empty up to the surface. Photometric terms cannot say so
     where the camera moves little around an object (the space before its surface lies inside its
     silhouette in every frame), and the depth term on ``sum w t`` empties it only slowly: the
-    oracle's sofa read 4.6% near on its own pixels with exact depths there (docs/training.md).
+    oracle's sofa kept opacity before its surface on its own pixels, with exact depths there
+    (docs/training.md).
     The margin leaves the soft surface itself alone. Not for the anchor: a ray grazing a floor
     passes within a voxel of it long before its depth.
     """
@@ -78,7 +79,7 @@ def disparity_curvature(depth: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
     Along an image line, a plane's disparity (inverse planar depth) is affine in the pixel
     coordinate, so this is 0 on any plane: a floor or wall continued behind an object costs
     nothing, while a hidden surface that leaves the visible one around it (the room's fog behind
-    the gnome's feet, its mean 2.35 m on a ray whose floor is at 2.65 m: docs/training.md) does.
+    the gnome's feet, in front of the floor it hides: docs/training.md) does.
     """
     hit = (acc[:, :-2] > 0.5) & (acc[:, 1:-1] > 0.5) & (acc[:, 2:] > 0.5)
     if not bool(hit.any()):

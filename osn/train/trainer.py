@@ -238,7 +238,7 @@ class Trainer:
             l_depth = sparse_depth_loss(out.depth[n_rgb:], d_gt, self.depth_robust)
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
             # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
-            # ray shortens) then pushes its surfaces behind the true ones (the room by ~6-10%).
+            # ray shortens) then pushes its surfaces behind the true ones.
             l_acc = (1.0 - out.acc).square().mean()
             total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
             if cfg.w_before_depth > 0 and k != st.anchor and len(d_gt):
@@ -274,8 +274,8 @@ class Trainer:
         """One valid scale vector ``(K,)`` for a composite step (anchor = 1; single object = [1])."""
         if self.net is None:
             return torch.ones(1, dtype=torch.float64, device=self.device), 1.0
-        # With many objects uniform candidates can all miss the valid set (gnome-house's is 1.4%
-        # of the box with 3 free objects); then candidates around remembered valid vectors.
+        # With many objects uniform candidates can all miss the valid set (a small share of the
+        # box once several objects are free); then candidates around remembered valid vectors.
         sbar, _, p, fell_back = sample_valid(
             self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False,
             near=self._near_positives if len(self.positives) else None,
@@ -377,9 +377,9 @@ class Trainer:
     def scale_lr_at(self, phase: Phase) -> float:
         """The scale network's learning rate at this iteration: a cosine from ``scale_lr`` at the
         start of every scale phase down to ``scale_lr_final * scale_lr`` at its end: at a constant
-        rate the last noisy steps decide where the boundary ends up (gnome-house-demo, one fixed
-        label pool, 1050 steps: IoU 0.855 constant, 0.876 with the decay; exact labels 0.92 /
-        0.95). A function of the iteration only, so a resumed run gets the same rates."""
+        rate the last noisy steps decide where the boundary ends up, and the decay lets the
+        boundary settle on the labels (docs/experiments/). A function of the iteration only, so a
+        resumed run gets the same rates."""
         cfg = self.cfg
         t = (self.iteration - phase.start) / max(phase.end - phase.start - 1, 1)
         return cfg.scale_lr * (cfg.scale_lr_final + (1.0 - cfg.scale_lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
