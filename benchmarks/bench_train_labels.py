@@ -1,4 +1,4 @@
-"""Label quality of the scale phase from saved fields (docs/training.md, "Label quality").
+"""Label quality of the scale phase from saved fields (measurements in docs/experiments/).
 
     python benchmarks/bench_train_labels.py RUN CHECKPOINT [--steps N] [--trims T,T,...] [--points N] [key=value ...]
 

@@ -72,7 +72,7 @@ def by_source(value: float | str, source: str, oracle: float, other: float) -> f
 
 
 #: ``w_edge: auto`` on inputs other than the oracle's: the weight of the silhouette-depth term
-#: (:func:`osn.train.losses.edge_excess`; docs/training.md, "Silhouette depth").
+#: (:func:`osn.train.losses.edge_excess`; docs/training.md, "Losses").
 W_EDGE_SFM = 1.0
 
 
