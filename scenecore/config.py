@@ -32,10 +32,13 @@ def _is_number(v: Any) -> bool:
     return (isinstance(v, (int, float)) and not isinstance(v, bool)) and math.isfinite(v)
 
 
-def integer(least: int | None = None) -> Rule:
-    """An integer (not a bool, not 1.5), at least ``least`` when given."""
-    what = "an integer" + (f" >= {least}" if least is not None else "")
-    return Rule(lambda v: _is_int(v) and (least is None or v >= least), what)
+def integer(least: int | None = None, most: int | None = None) -> Rule:
+    """An integer (not a bool, not 1.5), at least ``least`` and at most ``most`` when given."""
+    if most is None:
+        what = "an integer" + (f" >= {least}" if least is not None else "")
+    else:
+        what = f"an integer in {least if least is not None else '...'}..{most:,}"
+    return Rule(lambda v: _is_int(v) and (least is None or v >= least) and (most is None or v <= most), what)
 
 
 def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,

@@ -218,11 +218,13 @@ class _Ctx:
             raise self.fail(where, f"must be <= {hi}, got {v}")
         return v
 
-    def integer(self, v: Any, where: str, lo: int) -> int:
+    def integer(self, v: Any, where: str, lo: int, hi: int | None = None) -> int:
         if isinstance(v, bool) or not isinstance(v, int):
             raise self.fail(where, f"expected an integer, got {v!r}")
         if v < lo:
             raise self.fail(where, f"must be >= {lo}, got {v}")
+        if hi is not None and v > hi:
+            raise self.fail(where, f"must be <= {hi:,}, got {v:,}")
         return v
 
     def vector(self, v: Any, where: str, n: int, positive: bool = False) -> list[float]:
@@ -300,6 +302,12 @@ def _object(c: _Ctx, d: Any, where: str, index: int) -> ObjectSpec:
     return ObjectSpec(name, parts, mesh, c.number(d.get("mesh_scale", 1.0), f"{where}.mesh_scale", 0.0, strict_lo=True), _texture(c, d.get("texture"), f"{where}.texture"), keys)
 
 
+#: Upper bounds of a spec's sizes: an 8K frame, Cycles' own sample ceiling in practice, and
+#: ground truths by the thousand; above them a typo would render for days or fill the disk.
+MAX_RESOLUTION = 8192
+MAX_CYCLES_SAMPLES = 65536
+MAX_CONFIGS = 10_000
+
 TOP_FIELDS = {"name", "room", "objects", "rig", "resolution", "samples", "configs", "margin", "scale_range", "candidates", "seed"}
 
 
@@ -369,7 +377,7 @@ def _resolution(c: _Ctx, res: Any) -> list[int]:
     res = [res, res] if isinstance(res, int) and not isinstance(res, bool) else res
     if not isinstance(res, list) or len(res) != 2:
         raise c.fail("resolution", f"expected an integer or [width, height], got {res!r}")
-    return [c.integer(x, f"resolution[{i}]", 4) for i, x in enumerate(res)]
+    return [c.integer(x, f"resolution[{i}]", 4, MAX_RESOLUTION) for i, x in enumerate(res)]
 
 
 def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None) -> SceneSpec:
@@ -389,8 +397,8 @@ def spec_from_dict(d: Any, source: str = "<spec>", base_dir: Path | None = None)
         objects=objects,
         rig=rig,
         resolution=_resolution(c, d.get("resolution", [128, 128])),
-        samples=c.integer(d.get("samples", 1), "samples", 1),
-        configs=c.integer(d.get("configs", 50), "configs", 1),
+        samples=c.integer(d.get("samples", 1), "samples", 1, MAX_CYCLES_SAMPLES),
+        configs=c.integer(d.get("configs", 50), "configs", 1, MAX_CONFIGS),
         margin=c.number(d.get("margin", 0.05), "margin", 0.0),
         scale_range=scale_range,
         candidates=c.integer(d.get("candidates", 4000), "candidates", 1),

@@ -332,19 +332,25 @@ class TensoRFVM(Field):
 FIELD_ADDED_LATER: dict[str, Any] = {"object_resolution": 0, "anchor_planes": 0}
 
 
+#: Most voxels per axis of a grid (the paper's largest is 640) and texels per side of a plane:
+#: above, a typo would allocate many GB before the first step.
+MAX_RESOLUTION = 1024
+MAX_PLANE_SIZE = 8192
+
 _FIELD_RULES: dict[str, Rule] = {
     "kind": choice("dense", "tensorf"),
     # Trilinear interpolation needs 2 voxels per axis.
-    "resolution": integer(2),
-    "initial_resolution": integer(2),
-    "upsample_steps": integer(0),
+    "resolution": integer(2, MAX_RESOLUTION),
+    "initial_resolution": integer(2, MAX_RESOLUTION),
+    "upsample_steps": integer(0, 64),
     # A fractional count (1.5 layers) would crash later, as a traceback.
-    **{name: integer(1) for name in ("density_components", "appearance_components", "app_dim", "hidden")},
+    **{name: integer(1, 4096) for name in ("density_components", "appearance_components", "app_dim", "hidden")},
     **{name: number(0.0, lo_open=True, what="a positive learning rate") for name in ("lr_grid", "lr_net")},
     "tv_density": number(0.0),
-    "object_resolution": Rule(lambda v: v == "auto" or integer(0).ok(v), "auto or an integer >= 0"),
+    "object_resolution": Rule(lambda v: v == "auto" or integer(0, MAX_RESOLUTION).ok(v), f"auto or an integer in 0..{MAX_RESOLUTION}"),
     # Bilinear interpolation needs 2 texels per side; 0 = no planes.
-    "anchor_planes": Rule(lambda v: v == "auto" or (integer(0).ok(v) and v != 1), "auto, 0 or an integer >= 2"),
+    "anchor_planes": Rule(lambda v: v == "auto" or (integer(0, MAX_PLANE_SIZE).ok(v) and v != 1),
+                          f"auto, 0 or an integer in 2..{MAX_PLANE_SIZE}"),
 }
 
 

@@ -55,40 +55,53 @@ class Samples:
             raise ValueError(f"{path}: not an osn samples file ({e})") from None
 
 
+#: Most configurations one call draws: 10 million scale vectors of a few objects are a few
+#: hundred MB; more is a typo, not a benchmark.
+MAX_SAMPLES = 10_000_000
+#: Candidates scored at once: memory stays bounded whatever ``n`` is.
+BATCH = 1 << 18
+
+
 def sample_configurations(run: TrainedRun, n: int, threshold: float = VALID_THRESHOLD, seed: int = 0, max_draws: int = 2_000_000) -> Samples:
     """Draw ``n`` scale vectors with validity score above ``threshold`` (rejection sampling).
 
-    Candidates are uniform in the normalised box [0, 1)^(K-1). If fewer than ``n`` pass within
-    ``max_draws`` candidates, the best-scoring remaining candidates fill up with a logged
-    warning (never an error). A single-object scene has one configuration (the anchor alone).
+    Candidates are uniform in the normalised box [0, 1)^(K-1), scored in batches of at most
+    :data:`BATCH`. If fewer than ``n`` pass within ``max_draws`` candidates (at least one batch),
+    the best-scoring remaining candidates fill up with a logged warning (never an error). A
+    single-object scene has one configuration (the anchor alone). ``ValueError`` for ``n`` outside
+    1..:data:`MAX_SAMPLES` or a threshold that is not a finite number in [0, 1) (scores are
+    sigmoids: none exceeds 1).
     """
-    if n < 1:
-        raise ValueError(f"the number of samples must be >= 1, got {n}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_SAMPLES:
+        raise ValueError(f"the number of samples must be an integer in 1..{MAX_SAMPLES:,}, got {n}")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 <= threshold < 1.0:
+        raise ValueError(f"the validity threshold must be a number in [0, 1), got {threshold}")
     K = run.inputs.num_objects
     if K == 1:
         return Samples(np.zeros((1, 0)), np.ones((1, 1)), np.ones(1), threshold, seed)
     rng = np.random.default_rng(seed)
-    kept_s, kept_p, drawn = [], [], 0
+    kept_s, kept_p, drawn, kept = [], [], 0, 0
     best_s, best_p = np.zeros((0, K - 1)), np.zeros(0)
-    batch = max(4 * n, 4096)
-    while sum(len(p) for p in kept_p) < n and drawn < max_draws:
+    batch = min(max(4 * n, 4096), BATCH)
+    while kept < n and (drawn == 0 or drawn < max_draws):
         s = rng.random((batch, K - 1))
         p = run.scores(s)
         drawn += batch
         ok = p > threshold
-        kept_s.append(s[ok])
-        kept_p.append(p[ok])
-        # Fallback pool: only candidates not already kept, so no vector is returned twice.
+        kept_s.append(s[ok][: n - kept])
+        kept_p.append(p[ok][: n - kept])
+        kept += len(kept_p[-1])
+        # Fallback pool: the best n of the candidates not kept, so no vector is returned twice.
         rest = np.flatnonzero(~ok)
-        top = rest[np.argsort(-p[rest])[:n]]
-        best_s, best_p = np.concatenate([best_s, s[top]]), np.concatenate([best_p, p[top]])
-    s_all = np.concatenate(kept_s)[:n]
-    p_all = np.concatenate(kept_p)[:n]
+        best_s, best_p = np.concatenate([best_s, s[rest]]), np.concatenate([best_p, p[rest]])
+        top = np.argsort(-best_p, kind="stable")[: n - kept]
+        best_s, best_p = best_s[top], best_p[top]
+    s_all = np.concatenate(kept_s)
+    p_all = np.concatenate(kept_p)
     fell = n - len(s_all)
     if fell:
         log.warning("only %d of %d candidates scored above %.3g after %d draws; using the best-scoring rest",
                     len(s_all), n, threshold, drawn)
-        order = np.argsort(-best_p)
-        s_all = np.concatenate([s_all, best_s[order[:fell]]])
-        p_all = np.concatenate([p_all, best_p[order[:fell]]])
+        s_all = np.concatenate([s_all, best_s[:fell]])
+        p_all = np.concatenate([p_all, best_p[:fell]])
     return Samples(s_all, run.sbar(s_all), p_all, threshold, seed, fell)

@@ -29,7 +29,37 @@ def _auto_or(rule: Rule) -> Rule:
     return Rule(lambda v: v == "auto" or rule.ok(v), f"auto or {rule.what}")
 
 
+#: Upper bounds of the counts that size a step's tensors: far above any scene's need (the
+#: paper's settings included), low enough that a typo is an error, not an allocation of many GB.
+MAX_SAMPLES_PER_RAY = 4096
+MAX_RAYS = 1 << 20
+MAX_POINTS = 1 << 24
+_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays", "free_rays", "edge_rays", "label_rays", "hidden_strips")
+_SIZED_BY_POINTS = ("scale_samples", "candidates", "eval_pixels", "iou_samples")
+
+
+def _rgb() -> Rule:
+    """Three finite numbers in [0, 1]."""
+    unit = number(0.0, 1.0)
+    return Rule(lambda v: isinstance(v, (tuple, list)) and len(v) == 3 and all(unit.ok(x) for x in v),
+                "three numbers in [0, 1]")
+
+
+def _device() -> Rule:
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:N``."""
+    return Rule(lambda v: isinstance(v, str) and (v in ("auto", "cpu", "cuda") or
+                                                  (v.startswith("cuda:") and v[5:].isdigit())),
+                "auto, cpu, cuda or cuda:N")
+
+
 _RULES: dict[str, Rule] = {
+    "seed": integer(0),
+    "field": Rule(lambda v: isinstance(v, FieldConfig), "a field mapping"),
+    **{name: number(0.0) for name in ("w_rgb", "w_depth", "w_seg", "w_opacity", "w_free")},
+    "skip_occluded": number(0.0, 1.0, hi_open=True),
+    "scale_lr": number(0.0, lo_open=True, what="a positive learning rate"),
+    "background": _rgb(),
+    "device": _device(),
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
     "w_before_depth": number(0.0),
@@ -43,6 +73,10 @@ _RULES: dict[str, Rule] = {
     "final_label_trim": _auto_or(number(0.0, 1.0)),
     "anchor_guide_samples": _auto_or(integer(0)),
     **{name: integer(1) for name in _POSITIVE},
+    **{name: integer(1, MAX_RAYS) for name in _SIZED_BY_RAYS if name in _POSITIVE},
+    **{name: integer(0, MAX_RAYS) for name in _SIZED_BY_RAYS if name in _NON_NEGATIVE},
+    **{name: integer(1, MAX_POINTS) for name in _SIZED_BY_POINTS},
+    **{name: integer(1, MAX_SAMPLES_PER_RAY) for name in ("samples", "label_samples")},
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
     # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
