@@ -1,4 +1,4 @@
-"""Generated parts of README and docs: results tables from benchmark JSON, the experiments index.
+"""Generated parts of README and docs: results tables from benchmark JSON, the options table, the experiments index.
 
     python3 scripts/docs_generate.py            # rewrite every generated part
     python3 scripts/docs_generate.py --check    # exit 1 naming each part that differs from its source
@@ -10,6 +10,14 @@ repository root) and the table in it::
     ...written by this script: one provenance line, then the table...
     <!-- end generated -->
 
+The training options' table lives between ``<!-- generated: options -->`` and the same end
+comment: one row per option of ``TrainConfig`` (``osn/train/config.py``) and ``FieldConfig``
+(``osn/model/fields.py``, prefixed ``field.``) with its default and the attribute docstring under
+its declaration, read with ``ast`` (nothing is imported). Every docstring begins with its
+category: ``paper (<section or equation of the OSN paper>): ``, ``addition (<experiments/FILE.md
+that measured it, comma separated, or "not measured">): `` or ``infrastructure: ``; an option
+without one is an error (:func:`option_problems`).
+
 ``docs/experiments/README.md`` lists every experiment file by date with its title. Standard
 library only (it runs before any virtual environment exists).
 """
@@ -17,9 +25,12 @@ library only (it runs before any virtual environment exists).
 from __future__ import annotations
 
 import argparse
+import ast
+import os
 import re
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
@@ -29,6 +40,16 @@ BLOCK = re.compile(r"(<!-- generated: (?P<src>[^#\s]+)#(?P<name>[\w-]+) -->\n)(?
 EXPERIMENTS = REPO / "docs" / "experiments"
 INDEX = EXPERIMENTS / "README.md"
 EXPERIMENT_NAME = re.compile(r"^(\d{4}-\d{2}-\d{2})-[a-z0-9-]+\.md$")
+
+OPTIONS_BLOCK = re.compile(r"(<!-- generated: options -->\n)(?P<body>.*?)(<!-- end generated -->)", re.S)
+#: The option classes the options table lists: source file, class, prefix of its options' names.
+OPTION_CLASSES = (("osn/train/config.py", "TrainConfig", ""), ("osn/model/fields.py", "FieldConfig", "field."))
+#: An option docstring's first words: its category, and what it cites.
+CATEGORY = re.compile(r"(?:(?P<kind>paper|addition) \((?P<cite>[^()]*)\)|(?P<infra>infrastructure)):\s+(?P<text>\S.*)", re.S)
+#: What a ``paper (...)`` category must name: a section, an equation or the appendix.
+PAPER_CITE = re.compile(r"\b(?:Sec\.|Eq\.|appendix)")
+EXPERIMENT_CITE = re.compile(r"experiments/(?P<name>\d{4}-\d{2}-\d{2}-[a-z0-9-]+\.md)")
+NOT_MEASURED = "not measured"
 
 
 def markdown_files(root: Path = REPO) -> list[Path]:
@@ -57,12 +78,147 @@ def render_table(doc: dict, name: str, src: str) -> str:
     return provenance(doc) + "\n\n" + "\n".join(lines) + "\n"
 
 
-def regenerate(text: str, root: Path = REPO) -> str:
-    """``text`` with every generated block rendered again from its JSON."""
+class Option(NamedTuple):
+    """One option of a config class: its name, its default as written, its attribute docstring, its
+    line, and its source's module-level numeric constants (name -> value as written) for ``:data:`NAME```."""
+
+    name: str
+    default: str
+    doc: str | None
+    line: int
+    constants: dict[str, str]
+
+
+def module_constants(source: str, tree: ast.Module | None = None) -> dict[str, str]:
+    """Module-level names bound to a number (``A = 1`` or ``A, B = 1, 2``), with the number as written."""
+    out = {}
+    for node in (tree or ast.parse(source)).body:
+        if isinstance(node, ast.Assign) or (isinstance(node, ast.AnnAssign) and node.value is not None):
+            for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
+                pairs = (zip(target.elts, node.value.elts) if isinstance(target, ast.Tuple) and isinstance(node.value, ast.Tuple)
+                         else [(target, node.value)])
+                for name, value in pairs:
+                    if (isinstance(name, ast.Name) and isinstance(value, ast.Constant)
+                            and isinstance(value.value, (int, float)) and not isinstance(value.value, bool)):
+                        out[name.id] = ast.get_source_segment(source, value)
+    return out
+
+
+def class_options(source: str, class_name: str) -> list[Option]:
+    """The annotated fields of class ``class_name`` in ``source``, in order, each with the string
+    literal right under its declaration (None when there is none)."""
+    tree = ast.parse(source)
+    cls = next((n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == class_name), None)
+    if cls is None:
+        raise ValueError(f"no class {class_name}")
+    constants = module_constants(source, tree)
+    out = []
+    for i, node in enumerate(cls.body):
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        after = cls.body[i + 1] if i + 1 < len(cls.body) else None
+        doc = (after.value.value if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+               and isinstance(after.value.value, str) else None)
+        out.append(Option(node.target.id, _default(source, node.value), doc, node.lineno, constants))
+    return out
+
+
+def _default(source: str, value: ast.expr | None) -> str:
+    """A field's default as the source writes it: a string without quotes, ``field(default_factory=F)`` as ``F()``."""
+    if value is None:
+        return ""
+    if isinstance(value, ast.Constant) and isinstance(value.value, str):
+        return value.value
+    if isinstance(value, ast.Call) and getattr(value.func, "id", None) == "field":
+        for kw in value.keywords:
+            if kw.arg == "default_factory":
+                return f"{ast.get_source_segment(source, kw.value)}()"
+    return ast.get_source_segment(source, value) or ast.unparse(value)
+
+
+def option_problems(options: list[Option], where: str, experiments: Path | None = None) -> list[str]:
+    """Options whose docstring is missing or does not begin with its category; a ``paper (...)``
+    that names no section, equation or appendix; an ``addition (...)`` that cites anything but
+    experiment files (or ``not measured``), or, given ``experiments``, a file not there."""
+    out = []
+    for o in options:
+        at = f"{where}:{o.line}: option {o.name}"
+        m = CATEGORY.match(o.doc.strip()) if o.doc else None
+        if o.doc is None:
+            out.append(f"{at} has no docstring")
+        elif m is None:
+            out.append(f"{at}: docstring does not begin with 'paper (...): ', 'addition (...): ' or 'infrastructure: '")
+        elif m["kind"] == "paper" and not PAPER_CITE.search(m["cite"]):
+            out.append(f"{at}: 'paper (...)' names no section (Sec.), equation (Eq.) or appendix paragraph")
+        elif m["kind"] == "addition" and m["cite"].strip() != NOT_MEASURED:
+            for cite in (c.strip() for c in m["cite"].split(",")):
+                e = EXPERIMENT_CITE.fullmatch(cite)
+                if e is None:
+                    out.append(f"{at}: 'addition (...)' cites {cite!r}, not experiments/FILE.md or '{NOT_MEASURED}'")
+                elif experiments is not None and not (experiments / e["name"]).is_file():
+                    out.append(f"{at}: cites missing {cite}")
+    return out
+
+
+def all_options(root: Path = REPO) -> list[tuple[str, Option]]:
+    """Every option of :data:`OPTION_CLASSES` as ``(name as written in a config, option)``;
+    a ``ValueError`` naming each option :func:`option_problems` finds."""
+    rows, problems = [], []
+    for rel, cls, prefix in OPTION_CLASSES:
+        options = class_options((root / rel).read_text(), cls)
+        problems += option_problems(options, rel, root / "docs" / "experiments")
+        rows += [(prefix + o.name, o) for o in options]
+    if problems:
+        raise ValueError("option docstrings: " + "; ".join(problems))
+    return rows
+
+
+def _markdown(doc: str, constants: dict[str, str] | None = None) -> str:
+    """One table cell from reST: ``x`` and :role:`x` as `x`, :data:`NAME` of a numeric constant
+    of ``constants`` as its value and name, one line, ``|`` escaped."""
+    constants = constants or {}
+
+    def role(m: re.Match) -> str:
+        name = m["name"].split(".")[-1]
+        if m["role"] == "data" and name in constants:
+            return f"{constants[name]} (`{m['name']}`)"
+        return f"`{m['name']}`"
+    text = re.sub(r":(?P<role>\w+):`~?(?P<name>[^`]*)`", role, " ".join(doc.split()))
+    return text.replace("``", "`").replace("|", "\\|")
+
+
+def render_options(root: Path = REPO, base: Path | None = None) -> str:
+    """The options table; experiment files are linked relative to ``base`` (default docs/)."""
+    base = base if base is not None else root / "docs"
+    lines = ["*Written by `scripts/docs_generate.py` from the docstring under each option in "
+             "`osn/train/config.py` and `osn/model/fields.py`.*", "",
+             "| option | default | category | what it does |", "|---|---|---|---|"]
+    for name, o in all_options(root):
+        m = CATEGORY.match(o.doc.strip())
+        if m["infra"]:
+            category = "infrastructure"
+        elif m["kind"] == "paper" or m["cite"].strip() == NOT_MEASURED:
+            category = f"{m['kind']} ({_markdown(m['cite'])})"
+        else:
+            links = [f"[{e['name'][:-3]}]({os.path.relpath(root / 'docs' / 'experiments' / e['name'], base)})"
+                     for e in EXPERIMENT_CITE.finditer(m["cite"])]
+            category = f"addition ({', '.join(links)})"
+        default = f"`{_markdown(o.default)}`" if o.default else ""
+        lines.append(f"| `{name}` | {default} | {category} | {_markdown(m['text'], o.constants)} |")
+    return "\n".join(lines) + "\n"
+
+
+def regenerate(text: str, root: Path = REPO, path: Path | None = None) -> str:
+    """``text`` with every generated block rendered again from its JSON, and its options block
+    from the option docstrings (links relative to ``path``'s folder, default docs/)."""
     def sub(m: re.Match) -> str:
         doc = read_results(root / m["src"])
         return m.group(1) + render_table(doc, m["name"], m["src"]) + m.group(5)
-    return BLOCK.sub(sub, text)
+    text = BLOCK.sub(sub, text)
+    if OPTIONS_BLOCK.search(text):
+        table = render_options(root, path.parent if path is not None else None)
+        text = OPTIONS_BLOCK.sub(lambda m: m.group(1) + table + m.group(3), text)
+    return text
 
 
 def experiments_index(root: Path = REPO) -> str:
@@ -86,7 +242,7 @@ def experiments_index(root: Path = REPO) -> str:
 def stale(root: Path = REPO) -> list[str]:
     """Files whose generated parts differ from their sources (empty when all are current)."""
     out = [str(p.relative_to(root)) for p in markdown_files(root)
-           if p.exists() and p != root / "docs" / "experiments" / "README.md" and regenerate(p.read_text(), root) != p.read_text()]
+           if p.exists() and p != root / "docs" / "experiments" / "README.md" and regenerate(p.read_text(), root, p) != p.read_text()]
     index = root / "docs" / "experiments" / "README.md"
     if (root / "docs" / "experiments").is_dir() and (not index.exists() or index.read_text() != experiments_index(root)):
         out.append(str(index.relative_to(root)))
@@ -108,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if bad else 0
     for f in bad:
         p = REPO / f
-        p.write_text(experiments_index() if p == INDEX else regenerate(p.read_text()))
+        p.write_text(experiments_index() if p == INDEX else regenerate(p.read_text(), REPO, p))
         print(f"rewrote {f}")
     return 0
 

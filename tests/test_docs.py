@@ -87,7 +87,7 @@ def test_licence_and_citation() -> None:
     cff = yaml.safe_load((REPO / "CITATION.cff").read_text())
     assert cff["cff-version"].startswith("1.2") and cff["title"] and cff["authors"] and cff["message"]
     paper = cff["preferred-citation"]
-    assert paper["type"] == "conference-paper" and "Object Scale" in paper["title"]
+    assert paper["type"] == "conference-paper" and paper["title"].startswith("OSN: Infinite Representations")
 
 
 # ---- the checkers fail when the rule is broken -------------------------------------------------

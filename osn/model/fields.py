@@ -356,41 +356,74 @@ _FIELD_RULES: dict[str, Rule] = {
 
 @dataclass
 class FieldConfig:
-    """Which field and how big.
+    """Which field and how big (the ``field`` mapping of a training config).
 
-    Attributes:
-        kind: ``"dense"`` (:class:`DenseGridField`) or ``"tensorf"`` (:class:`TensoRFVM`).
-        resolution: final voxels per axis.
-        initial_resolution: starting voxels per axis (coarse-to-fine; equal = no upsampling).
-        upsample_steps: number of evenly log-spaced resolution increases during training.
-        density_components, appearance_components, app_dim, hidden: TensoRF sizes (paper: 16, 48).
-        lr_grid, lr_net: Adam learning rates of grids and networks.
-        tv_density: weight of the density total-variation prior (:meth:`Field.density_tv`).
-        object_resolution: final voxels per axis of every object's field but the anchor's (whose
-            is ``resolution``); each grows on the anchor's schedule scaled to it. ``auto``: on SfM
-            inputs as many as the object's box spans pixels in its training frames
-            (:func:`osn.train.config.footprint_resolution`), so a voxel is about one pixel (finer
-            voxels fit the training views and smear novel ones), ``resolution`` on the oracle's
-            (:func:`osn.train.config.object_resolutions`; docs/training.md). 0: ``resolution``.
-        anchor_planes: texels per side of the anchor's colour planes (:func:`triplane`; dense
-            fields only, TensoRF's own planes hold its colour); ``auto``: on SfM inputs a texel
-            about one pixel at the anchor's median sparse depth, none on the oracle's
-            (:func:`osn.train.config.anchor_plane_size`); 0: the grid's colour alone.
+    Each option's docstring begins with its category (``paper (...)``, ``addition (...)`` or
+    ``infrastructure``) and names its neutral value; docs/training.md's Options table is generated
+    from them (``scripts/docs_generate.py``).
     """
 
     kind: str = "dense"
+    """addition (experiments/2026-11-24-measurements-two-cores.md): ``dense``
+    (:class:`DenseGridField`: a density and RGB voxel grid, no MLP; faster per iteration on a CPU)
+    or ``tensorf`` (:class:`TensoRFVM`, the paper's field). Unit: a choice. Neutral: ``tensorf``
+    (the paper's field)."""
     resolution: int = 64
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module):
+    Final voxels per axis of the anchor's field, and the most any object's field reaches. Unit:
+    voxels per axis. Neutral: none."""
     initial_resolution: int = 32
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module:
+    coarse-to-fine, as TensoRF): Voxels per axis the fields start at. Unit: voxels per axis.
+    Neutral: the value of ``resolution`` (no upsampling)."""
     upsample_steps: int = 2
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module:
+    coarse-to-fine, as TensoRF): Log-spaced resolution increases from ``initial_resolution`` to
+    the final resolution over the first 40% of all field iterations. Unit: steps. Neutral: 0 (the
+    fields start at their final resolution)."""
     density_components: int = 16
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: 16
+    density components): TensoRF's density components per VM plane and line (``tensorf`` only).
+    Unit: components. Neutral: none."""
     appearance_components: int = 48
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: 48
+    appearance components): TensoRF's appearance components per VM plane and line (``tensorf``
+    only). Unit: components. Neutral: none."""
     app_dim: int = 27
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: the
+    appearance basis B, sized as TensoRF's): Width of the appearance feature the colour MLP reads
+    (``tensorf`` only). Unit: channels. Neutral: none."""
     hidden: int = 64
+    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: the
+    tiny colour MLP, as TensoRF's): Width of the colour MLP's two hidden layers (``tensorf``
+    only). Unit: nodes per layer. Neutral: none."""
     lr_grid: float = 0.2
+    """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): Adam learning
+    rate of the grids (the dense grid, the anchor's colour planes, TensoRF's planes and lines).
+    Unit: learning rate. Neutral: none (must be positive)."""
     lr_net: float = 1e-3
+    """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam at 0.001): Adam
+    learning rate of the fields' networks (TensoRF's appearance basis and colour MLP; a dense field
+    has none). Unit: learning rate. Neutral: none (must be positive)."""
     tv_density: float = 0.0
+    """addition (experiments/2026-11-24-measurements-two-cores.md,
+    experiments/2026-11-25-longer-field-training-best-of-n-ceiling.md): Weight of a total-variation
+    prior on each field's raw density (:meth:`Field.density_tv`) in the stage-1 objective, for
+    space no ray constrains. Unit: loss weight. Neutral: 0 (term off, the default)."""
     object_resolution: int | str = "auto"
+    """addition (experiments/2026-11-27-object-resolution-anchor-planes.md): Final voxels per axis
+    of every object's field but the anchor's (at most ``resolution``), grown on the anchor's
+    schedule scaled to it. ``auto`` (:func:`osn.train.config.object_resolutions`): on inputs other
+    than the oracle's as many as the object's box spans pixels in its training frames
+    (:func:`osn.train.config.footprint_resolution`), ``resolution`` on the oracle's. Unit: voxels
+    per axis. Neutral: 0 (``resolution``)."""
     anchor_planes: int | str = "auto"
+    """addition (experiments/2026-11-27-object-resolution-anchor-planes.md,
+    experiments/2026-11-28-one-rule-room-options.md): Texels per side of three colour planes added
+    to the anchor's RGB (:func:`triplane`; ``dense`` only, TensoRF's own planes hold its colour).
+    ``auto`` (:func:`osn.train.config.anchor_plane_size`): about one texel per pixel where the
+    anchor's box spans more pixels than its grid has voxels, else none. Unit: texels per side.
+    Neutral: 0 (the grid's colour alone)."""
 
     def __post_init__(self) -> None:
         validate(self, "field", _FIELD_RULES)

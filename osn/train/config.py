@@ -199,65 +199,260 @@ class TrainConfig:
     """Everything a training run depends on (stored as ``config.yaml`` in the run).
 
     Iteration counts are per phase; ``rays`` counts are per step. See :mod:`osn.train.loop`.
-    The defaults are the CPU default (``configs/osn-cpu.yaml``).
+    The defaults are the CPU default (``configs/osn-cpu.yaml``). Each option's docstring begins
+    with its category (``paper (...)``, ``addition (...)`` or ``infrastructure``) and names its
+    neutral value; docs/training.md's Options table is generated from them
+    (``scripts/docs_generate.py``).
     """
 
     seed: int = 0
+    """infrastructure: Seed of the fields' initialisation, the rays each step draws and the scale
+    samples; an integer >= 0. Neutral: none (each seed is one draw of the same training)."""
     field: FieldConfig = field(default_factory=FieldConfig)
+    """paper (Sec. 3.1; appendix "Details of Networks"): The per-object radiance fields, each in its
+    object's own unit: their kind and size (the ``field.*`` options). Neutral: none."""
     stage1_iters: int = 400
+    """paper (Sec. 3.3, Stage 1; appendix "Details of the Joint Optimization", Training Schedule):
+    Iterations of stage 1, every object trained alone on its own pixels and sparse depths (Eq. 2,
+    plus this project's stage-1 terms). Unit: iterations. Neutral: 0 skips stage 1."""
     rounds: int = 5
+    """paper (Sec. 3.3, Stage 2: R rounds of alternation): Rounds of a scale phase followed by a
+    field phase. Unit: rounds. Neutral: 0 (no alternation: stage 1, then the final scale phase)."""
     field_iters: int = 100
+    """paper (Sec. 3.3, Stage 2; appendix "Details of the Joint Optimization", Training Schedule):
+    Iterations of each round's field phase: all objects composited at one valid scale vector per
+    step (Eq. 8-10). Unit: iterations per round. Neutral: 0 (no field phases)."""
     scale_iters: int = 150
+    """paper (Sec. 3.3, Stage 2; appendix "Details of the Joint Optimization", Training Schedule):
+    Iterations of each round's scale phase: the scale network trained on depth-order labels
+    (Eq. 13-15). Unit: iterations per round. Neutral: 0 (no scale phase in the rounds)."""
     final_scale_iters: int = 2000
+    """addition (experiments/2026-11-25-final-scale-phase.md): Iterations of a last scale phase
+    after the last field phase, on the final fields' label pool trimmed by ``final_label_trim``,
+    long enough for the network to fit its labels. Unit: iterations. Neutral: 0 (training ends
+    with the last field phase, as the paper's schedule does)."""
     rays_per_object: int = 384
+    """paper (Sec. 3.3, Eq. 2): Pixels of an object's mask drawn for it per stage-1 step (and per
+    ``w_alone`` term of a field step). Unit: rays per object and step. Neutral: none (at least 1)."""
     rays: int = 1024
+    """paper (Sec. 3.3, Eq. 8-10): Training pixels drawn per field step, rendered as the
+    composite of every object. Unit: rays per step. Neutral: none (at least 1)."""
     depth_rays: int = 64
+    """paper (Sec. 3.3, Eq. 2 and Eq. 9): Sparse depths drawn per object in a stage-1 step, and
+    over all objects per field step. Unit: rays per step. Neutral: 0 (no sparse-depth rays: the
+    depth loss sees nothing)."""
     samples: int = 48
-    anchor_guide_samples: int | str = "auto"  # resolved by resolve_anchor_guide_samples
+    """paper (Sec. 3.3, the M points sampled along each ray): Stratified samples per object and
+    ray, in training and in every render of the run (``osn evaluate`` renders with this count).
+    Unit: samples per object and ray. Neutral: none (at least 1)."""
+    anchor_guide_samples: int | str = "auto"
+    """addition (experiments/2026-11-27-anchor-guide-samples.md,
+    experiments/2026-11-28-one-rule-room-options.md): A gradient-free pass of this many density
+    samples along each of the anchor's rays places its ``samples`` at the quantiles of the weights
+    it finds (``osn.model.volume.guided_positions``). ``auto`` (:func:`resolve_anchor_guide_samples`):
+    :data:`ANCHOR_GUIDE_SAMPLES` where the anchor's box spans more pixels than its grid has voxels
+    or it has no sparse depth, else 0. Unit: density samples per anchor ray. Neutral: 0 (even
+    stratified samples)."""
     skip_occluded: float = 1e-3
+    """infrastructure: A gradient-free density pass finds the samples whose transmittance is below
+    this; a render evaluates only the others with gradients and colour, which changes a ray's
+    opacity by less than this. A shortcut for speed. Unit: transmittance, in [0, 1). Neutral: 0
+    (every sample evaluated)."""
     w_rgb: float = 1.0
+    """paper (Sec. 3.3, Eq. 2 and Eq. 8; appendix "Details of the Joint Optimization", Loss
+    Weights): Weight of the squared RGB error, alone on an object's pixels and in the composite.
+    Unit: loss weight. Neutral: 0 (no RGB loss)."""
     w_depth: float = 1.0
-    depth_robust: float | str = "auto"  # resolved by resolve_depth_robust
+    """paper (Sec. 3.3, Eq. 2 and Eq. 9; appendix "Details of the Joint Optimization", Loss
+    Weights): Weight of the sparse-depth loss, alone and in the composite (there compared in the
+    object's own unit). Unit: loss weight. Neutral: 0 (no depth loss)."""
+    depth_robust: float | str = "auto"
+    """addition (experiments/2026-11-26-sfm-phantom-depths-robust-depth-loss.md): The sparse-depth
+    loss's form: 0 the squared error, ``k > 0`` a Cauchy loss at ``k`` times the batch's median
+    residual, against SfM's phantom depths. ``auto`` (:func:`resolve_depth_robust`): 0 on the
+    oracle's inputs, :data:`DEPTH_ROBUST_SFM` on any other. Unit: multiples of the median
+    residual. Neutral: 0 (the paper's squared error)."""
     w_seg: float = 0.01
+    """paper (Sec. 3.3, Eq. 10; appendix "Details of the Joint Optimization", Loss Weights): Weight
+    of the segmentation loss of field steps (negative log-likelihood of the objects' log weight
+    shares against the masks). Unit: loss weight. Neutral: 0 (no segmentation loss)."""
     w_opacity: float = 1.0
+    """addition (experiments/2026-11-24-measurements-two-cores.md): Weight of the stage-1 term that
+    pulls an object's opacity to 1 on every pixel of its mask, so a semi-transparent field cannot
+    shorten its depths. Unit: loss weight. Neutral: 0 (term off)."""
     w_free: float = 1.0
+    """addition (experiments/2026-11-24-measurements-two-cores.md): Weight of the stage-1
+    free-space term, the squared opacity of an object alone on ``free_rays`` of its free pixels
+    (``free_space``), so objects do not bleed past their silhouettes. Unit: loss weight. Neutral:
+    0 (term off)."""
     w_distortion: float = 0.03
+    """addition (experiments/2026-11-26-seed-spread-distortion.md): Weight of mip-NeRF 360's
+    distortion loss on an object's own pixels in stage 1 (how spread the weights are along the
+    ray), so a pixel shows one surface instead of a fog. Unit: loss weight (the loss is
+    unit-free). Neutral: 0 (term off)."""
     w_before_depth: float = 0.0
+    """addition (experiments/2026-11-28-before-depth-free-space.md,
+    experiments/2026-11-28-two-more-levers-room-bound.md): Weight of the stage-1 term that empties
+    the space before each sparse depth: the squared opacity every object but the anchor reaches
+    before ``before_depth_margin`` of the depth. Unit: loss weight. Neutral: 0 (term off, the
+    default)."""
     before_depth_margin: float = 0.95
-    w_hidden_smooth: float | str = "auto"  # resolved by resolve_w_hidden_smooth
+    """addition (experiments/2026-11-28-before-depth-free-space.md): Where ``w_before_depth``'s
+    term stops along a sparse-depth ray. Unit: fraction of the sparse depth, in (0, 1). Neutral:
+    none of its own (``w_before_depth: 0`` switches the term off)."""
+    w_hidden_smooth: float | str = "auto"
+    """addition (experiments/2026-11-28-hidden-anchor-smoothness.md): Weight of the anchor's
+    disparity curvature on strips across pixels that objects hide it on
+    (``osn.train.losses.disparity_curvature``): zero on any plane, so a floor continues behind
+    what stands on it. ``auto`` (:func:`resolve_w_hidden_smooth`): :data:`W_HIDDEN_SMOOTH_ORACLE`
+    on the oracle's inputs, 0 on any other. Unit: loss weight. Neutral: 0 (term off)."""
     hidden_strips: int = 32
+    """addition (experiments/2026-11-28-hidden-anchor-smoothness.md): Strips of five adjacent
+    pixels drawn per step for ``w_hidden_smooth``'s term. Unit: strips per step. Neutral: none of
+    its own (``w_hidden_smooth: 0`` switches the term off)."""
     w_alone: float = 1.0
-    w_edge: float | str = "auto"  # resolved by resolve_w_edge
+    """addition (experiments/2026-11-24-what-limited-valid-set-iou.md,
+    experiments/2026-11-25-valid-set-scene-suite.md): Weight of every object's stage-1 objective
+    added to each field step, so the composite at sampled configurations cannot reshape an
+    object's contacts to fit the labels. Unit: loss weight. Neutral: 0 (field steps as the
+    paper's Eq. 8-10 alone)."""
+    w_edge: float | str = "auto"
+    """addition (experiments/2026-11-26-silhouette-depth.md): Weight of the silhouette-depth term
+    (``osn.train.losses.edge_excess``, objects but the anchor): an edge pixel's log depth may
+    exceed its inner neighbour's by at most ``edge_slope``, the excess squared. ``auto``
+    (:func:`resolve_w_edge`): 0 on the oracle's inputs, :data:`W_EDGE_SFM` on any other. Unit:
+    loss weight. Neutral: 0 (term off)."""
     edge_rays: int = 64
+    """addition (experiments/2026-11-26-silhouette-depth.md): Silhouette pixels (each with its inner
+    neighbour) drawn per object and step for ``w_edge``'s term. Unit: rays per object and step.
+    Neutral: none of its own (``w_edge: 0`` switches the term off)."""
     edge_slope: float = 0.02
+    """addition (experiments/2026-11-26-silhouette-depth.md): How far an edge pixel's log depth may
+    exceed its inner neighbour's before ``w_edge``'s term counts it. Unit: difference of natural
+    log depths (unit-free). Neutral: none of its own (``w_edge: 0`` switches the term off)."""
     free_space: str = "ordered"
+    """addition (experiments/2026-11-25-valid-set-scene-suite.md,
+    experiments/2026-11-28-free-space-ordered.md): Which pixels are an object's free pixels for
+    ``w_free``: ``anchor`` (pixels showing the anchor or nothing), ``objects`` (also other
+    objects' pixels within ``free_band_objects`` of its mask), ``ordered`` (``objects`` until the
+    first label pool orders a pair, then not the pixels of objects in front of it), ``all``
+    (every other object's pixel within ``free_band``: the paper's masked images) or ``none``.
+    Unit: a choice. Neutral: ``none`` (no free pixels)."""
     free_rays: int = 128
+    """addition (experiments/2026-11-24-measurements-two-cores.md): Free pixels drawn per object
+    and step for ``w_free``'s term. Unit: rays per object and step. Neutral: none of its own
+    (``w_free: 0`` or ``free_space: none`` switches the term off)."""
     free_band: int = 4
+    """addition (experiments/2026-11-24-measurements-two-cores.md,
+    experiments/2026-11-27-fields-lose-novel-views.md): How far from an object's mask a pixel
+    showing the anchor or nothing (with ``free_space: all``, any other object's pixel) may lie to
+    be one of its free pixels. Unit: pixels. Neutral: 0 (no such free pixels)."""
     free_band_objects: int = 1
+    """addition (experiments/2026-11-25-valid-set-scene-suite.md,
+    experiments/2026-11-28-schedule-and-metrics-as-measured.md): How far from an object's mask
+    another object's pixel may lie to be one of its free pixels (``free_space: objects`` and
+    ``ordered``; objects but the anchor), for gaps the grid cannot resolve. Unit: pixels.
+    Neutral: 0 (no other object's pixel is free, as ``anchor``)."""
     scale_width: int = 64
+    """paper (appendix "Details of Networks", Object Scale Network: 4 hidden layers of 64 nodes):
+    Width of the scale network's hidden layers. Unit: nodes per layer. Neutral: none."""
     scale_layers: int = 4
+    """paper (appendix "Details of Networks", Object Scale Network: 4 hidden layers of 64 nodes):
+    Hidden layers of the scale network. Unit: layers. Neutral: none."""
     scale_lr: float = 5e-3
+    """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): The scale
+    network's Adam learning rate at the start of every scale phase (the paper's is 0.001). Unit:
+    learning rate. Neutral: none (must be positive)."""
     scale_lr_final: float = 0.1
+    """addition (experiments/2026-11-24-what-limited-valid-set-iou.md,
+    experiments/2026-11-25-valid-set-scene-suite.md): The fraction of ``scale_lr`` the rate
+    decays to by a cosine within every scale phase. Unit: fraction of ``scale_lr``, in [0, 1].
+    Neutral: 1 (a constant rate, as the paper's)."""
     scale_samples: int = 1024
+    """paper (Sec. 3.3, Eq. 11: the H sampled scale combinations): Normalised scale vectors drawn
+    and labelled per scale step. Unit: scale vectors per step. Neutral: none (at least 1)."""
     label_rays: int = 0
+    """addition (not measured): ``> 0``: a scale step scores its samples against this many random
+    rays of the label pool; 0: against the whole pool. Unit: rays per scale step. Neutral: 0 (the
+    whole pool, the default)."""
     label_replay: float = 0.5
+    """addition (not measured): The share of each scale step's samples drawn jittered around scale
+    vectors labelled valid earlier instead of uniformly; labels are always recomputed, so this only
+    spends samples near the boundary. Unit: fraction of ``scale_samples``, in [0, 1]. Neutral: 0
+    (uniform samples, as the paper's)."""
     label_samples: int = 24
+    """paper (Sec. 3.3, Eq. 17: the M points of each object's independent depth rendering):
+    Samples per ray of the label pool's renders, each object alone. Unit: samples per object and
+    ray. Neutral: none (at least 1)."""
     label_trim: float = 0.01
-    final_label_trim: float | str = "auto"  # resolved by resolve_final_label_trim
+    """addition (experiments/2026-11-24-measurements-two-cores.md,
+    experiments/2026-11-24-what-limited-valid-set-iou.md): In the rounds' scale phases a sample is
+    labelled valid when on every object pair it violates at most the step's best sample's count
+    plus this share of the pair's rays, against noise in learned depths. Unit: fraction of a
+    pair's rays, in [0, 1]. Neutral: 0 (no more violations than the best sample's)."""
+    final_label_trim: float | str = "auto"
+    """addition (experiments/2026-11-25-final-scale-phase.md,
+    experiments/2026-11-27-final-label-trim-auto-sfm.md,
+    experiments/2026-11-28-final-label-trim-sfm-0003.md): ``label_trim`` of the final scale
+    phase: tight labels belong on final fields only. ``auto`` (:func:`resolve_final_label_trim`):
+    :data:`FINAL_LABEL_TRIM_ORACLE` on the oracle's inputs, :data:`FINAL_LABEL_TRIM_SFM` on any
+    other. Unit: fraction of a pair's rays, in [0, 1]. Neutral: the value of ``label_trim`` (the
+    final phase labels as the rounds do)."""
     pair_minority: float = 0.2
+    """addition (experiments/2026-11-25-valid-set-scene-suite.md): An object pair with fewer label
+    rays than this times its opposite pair's is left out of the labels: those few rays are a field
+    filling a gap it cannot resolve. Unit: ratio of ray counts, in [0, 1]. Neutral: 0 (every pair
+    kept)."""
     label_erode: int = 0
+    """addition (experiments/2026-11-25-longer-field-training-best-of-n-ceiling.md,
+    experiments/2026-11-26-limiting-bounds-per-run.md): The label pool takes only pixels at least
+    this far inside their mask. Unit: pixels. Neutral: 0 (silhouette pixels kept, the default)."""
     label_stride: int = 0
+    """addition (not measured): The label pool takes every ``label_stride``-th labelled pixel per
+    axis; 0 picks the stride that keeps about :data:`AUTO_LABEL_SIDE` pixels along the longer
+    image side (:func:`osn.train.config.label_stride`), which bounds the pool's render cost. Unit:
+    pixels. Neutral: 1 (every pixel)."""
     coverage_threshold: float = 0.9
-    anchor_coverage: float | str = "auto"  # resolved by resolve_anchor_coverage
+    """paper (Sec. 3.3, Eq. 16-18: the objects whose depths the soft Z-buffer orders on a ray; the
+    paper names no threshold): An object covers a label-pool ray when its opacity alone exceeds
+    this; a pool ray needs its labelled object and another one covering it. Unit: opacity, in
+    [0, 1]. Neutral: none."""
+    anchor_coverage: float | str = "auto"
+    """addition (experiments/2026-11-26-anchor-coverage.md): ``coverage_threshold`` for the anchor,
+    whose hidden surfaces behind an object's contact may stay thin. ``auto``
+    (:func:`resolve_anchor_coverage`): :data:`ANCHOR_COVERAGE_ORACLE` on the oracle's inputs,
+    :data:`ANCHOR_COVERAGE_SFM` on any other. Unit: opacity, in [0, 1]. Neutral: the value of
+    ``coverage_threshold`` (the anchor covers as the objects do)."""
     uncertain_acc: float = 0.9
+    """addition (experiments/2026-11-25-valid-set-scene-suite.md): The label pool drops rays on
+    which some object's opacity lies in ``(uncertain_acc, coverage_threshold]``. Unit: opacity, in
+    [0, 1]. Neutral: the value of ``coverage_threshold`` (no ray dropped, the default)."""
     valid_threshold: float = 0.95
+    """paper (Sec. 3.3, below Eq. 4: a score above 0.95): A field step's scale vector must score
+    above this; when none of ``candidates`` does, the best one is used and counted in
+    ``fallbacks``. Unit: validity score, in [0, 1). Neutral: none."""
     candidates: int = 4096
+    """paper (Sec. 3.3, below Eq. 4: resample until the score passes the threshold): Scale vectors
+    drawn per field step to find one above ``valid_threshold``. Unit: scale vectors per step.
+    Neutral: none (at least 1)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """infrastructure: Colour a ray gets where no object is opaque. Unit: RGB, each in [0, 1].
+    Neutral: none."""
     eval_every: int = 200
+    """infrastructure: Iterations between two lines of ``metrics.jsonl`` (and one at every phase
+    end). Unit: iterations. Neutral: none (at least 1)."""
     eval_pixels: int = 4096
+    """infrastructure: Fixed training-view pixels of the monitor's PSNR. Unit: pixels. Neutral:
+    none (at least 1)."""
     iou_samples: int = 20000
+    """infrastructure: Points per stratum of the monitor's valid-set precision, recall and IoU
+    (``scenecore.validity.set_samples``). Unit: points per stratum. Neutral: none (at least 1)."""
     checkpoint_every: int = 250
+    """infrastructure: Iterations between checkpoints (one is also written at the end). Unit:
+    iterations. Neutral: none (at least 1)."""
     device: str = "auto"
+    """infrastructure: Where training runs: ``auto`` (CUDA when present, else the CPU), ``cpu``,
+    ``cuda`` or ``cuda:N``. Unit: a device name. Neutral: none."""
 
     def __post_init__(self) -> None:
         validate(self, "training", _RULES)

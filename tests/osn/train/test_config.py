@@ -52,7 +52,7 @@ def test_config_round_trips_and_checks_the_field_section(tmp_path: Path) -> None
         TrainConfig.from_dict({"field": {"resolutoin": 8}})
     path = tmp_path / "c.yaml"
     path.write_text("field:\n  resolution: 1\n")
-    with pytest.raises(ValueError, match=f"^{path}: field config: resolution must be an integer >= 2, got 1"):
+    with pytest.raises(ValueError, match=f"^{path}: field config: resolution must be an integer in 2..1,024, got 1"):
         TrainConfig.from_yaml(path)
 
 
