@@ -16,7 +16,8 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore.atomic import atomic_write_json
-from benchgen.score.predictions import SUFFIX, Candidate, check_candidate
+from scenecore.paths import join_inside
+from benchgen.score.predictions import SUFFIX, Candidate, PredictionError, check_candidate
 from benchgen.score.truth import Truth
 from osn.model.parallel import map_views
 from osn.model.run import TrainedRun
@@ -81,18 +82,20 @@ class RenderedCandidates:
         """Write every candidate (rendering those not yet rendered) as the prediction directory
         ``out`` (``CAND/{rgb,depth,ids}/NAME.*`` for the evaluated views, ``method.json``)."""
         out = Path(out)
+        # Every path checked before anything is rendered or written: names from files stay inside ``out``.
+        paths = {(i, v): {kind: join_inside(out, f"{name}/{kind}/{f.name}{suffix}", "candidate file", PredictionError)
+                          for kind, suffix in SUFFIX.items()}
+                 for i, name in enumerate(self.names) for v, f in enumerate(self.truth.frames)}
         cands = [self.load(i) for i in range(len(self))]
 
         def write_one(i: int, v: int) -> None:
-            c, name, f = cands[i], self.names[i], self.truth.frames[v]
-            path = {kind: out / name / kind / (f.name + suffix) for kind, suffix in SUFFIX.items()}
+            c, path = cands[i], paths[i, v]
             D.write_rgb(path["rgb"], np.round(c.rgb[v] * 255.0).astype(np.uint8))  # 8-bit, as the dataset
             D.write_depth(path["depth"], c.depth[v])
             D.write_ids(path["ids"], c.ids[v])
 
-        for name in self.names:
-            for kind in SUFFIX:
-                (out / name / kind).mkdir(parents=True, exist_ok=True)
+        for folder in {p.parent for path in paths.values() for p in path.values()}:
+            folder.mkdir(parents=True, exist_ok=True)
         # Threads: each file is encoded (the encoders let other threads run) and fsync-ed (a wait
         # on the disk), so several at once keep both going; the first error is raised.
         jobs = [(i, v) for i in range(len(self)) for v in range(len(self.truth.frames))]

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import atomic_write_json, read_json
+from ..paths import join_inside
 from ..validity import ValidRegion
 from .images import read_depth, read_ids, read_rgb, write_depth, write_ids, write_rgb
 from .model import (
@@ -156,6 +157,7 @@ def _parse_frames(d: dict[str, Any], T: int, num_views: int, path: Path) -> list
     names = set()
     for i, f in enumerate(_req(d, "frames", "manifest", path)):
         name = str(_req(f, "name", f"frame {i}", path))
+        join_inside(path.parent, name, f"frame {i} name", DatasetError, source=path)  # names become file names
         if name in names:
             raise DatasetError(f"{path}: duplicate frame name {name!r}")
         names.add(name)

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..cameras import intrinsics_matrix, scale_about
 from ..errors import DatasetError
+from ..paths import join_inside
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "NO_OBJECT", "MAX_OBJECTS", "SPLITS", "ROLES", "DatasetError",
@@ -149,8 +150,12 @@ def config_dirname(index: int) -> str:
 
 
 def frame_paths(root: str | Path, frame_name: str, config: int | None = None) -> FramePaths:
-    """Paths of a frame's files: the training video when ``config`` is None, else a config's view."""
+    """Paths of a frame's files: the training video when ``config`` is None, else a config's view.
+
+    Raises ``DatasetError`` for a frame name that would lead outside the dataset (absolute, ``..``):
+    every read and write of a frame goes through here."""
     base = Path(root) / ("train" if config is None else Path("configs") / config_dirname(config))
+    join_inside(base, frame_name, "frame name", DatasetError)
     return FramePaths(
         rgb=base / "rgb" / f"{frame_name}.png",
         depth=base / "depth" / f"{frame_name}.exr",
