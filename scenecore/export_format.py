@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
+import zipfile
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -36,6 +38,7 @@ import numpy as np
 
 from .cameras import opengl_from_opencv, scale_about
 from .errors import ExportFormatError
+from .paths import join_inside
 # The scale network and configuration maths live in scale_space; callers (the add-on, osn.export)
 # reach them through this module, the one entry point of the export format.
 from .scale_space import (
@@ -230,12 +233,63 @@ def _array(arrays: dict[str, np.ndarray], key: str, shape: tuple[int | None, ...
     return a
 
 
-def _load_npz(path: str) -> dict[str, np.ndarray]:
+#: Most bytes the arrays of one export ``.npz`` may declare together, whatever its manifest says
+#: (a manifest can claim any count); a million sampled configurations of thirty objects take a
+#: tenth of it.
+MAX_NPZ_BYTES = 1 << 28
+_NPY_HEADERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def _npz_declared_bytes(path: str) -> int:
+    """Bytes the members of ``path`` declare in their ``.npy`` headers, read without loading any
+    array; a member that is not a ``.npy`` array of numbers is refused."""
+    total = 0
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version not in _NPY_HEADERS:
+                    raise ValueError(f"member {info.filename!r} has .npy format version {version}")
+                shape, _, dtype = _NPY_HEADERS[version](fh)
+            if not info.filename.endswith(".npy") or dtype.hasobject:
+                raise ValueError(f"member {info.filename!r} is not a .npy array of numbers")
+            total += math.prod(shape) * dtype.itemsize
+    return total
+
+
+def _load_npz(path: str, max_bytes: int) -> dict[str, np.ndarray]:
+    """Every array of ``path`` (never unpickling). Their ``.npy`` headers are read first and the
+    file is refused, before any array is allocated, when they declare more than ``max_bytes``
+    together (what the export's sizes allow): a small compressed member can declare gigabytes."""
     try:
+        declared = _npz_declared_bytes(path)
+        if declared > max_bytes:
+            raise ExportFormatError(
+                f"{path}: arrays declare {declared} bytes, more than the {max_bytes} the export's sizes allow")
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
+    except ExportFormatError:
+        raise
     except Exception as e:  # noqa: BLE001 - any decoding failure is a corrupt file for the user
-        raise ExportFormatError(f"{path}: cannot read ({e})") from None
+        raise ExportFormatError(f"{path}: cannot read ({' '.join(str(e).split())})") from None
+
+
+def _declared_count(m: dict[str, Any], key: str, mpath: str) -> int:
+    """``m[key]["count"]``, the number of test cameras or samples the manifest declares (0 when
+    ``m[key]`` is null or absent)."""
+    entry = m.get(key)
+    if entry is None:
+        return 0
+    return _int(_get(_dict(entry, mpath, f"{key!r}"), "count", f"{mpath}: {key}"), mpath, f"{key}.count", minimum=0)
+
+
+def _arrays_bytes(m: dict[str, Any], mpath: str, T: int) -> int:
+    """Most bytes ``arrays.npz`` can hold for the manifest's sizes (at most :data:`MAX_NPZ_BYTES`):
+    float64 4x4 poses of the camera, of every object and of every declared test camera at each of
+    the ``T`` frames, the objects' int64 frame indices and the declared sampled configurations."""
+    K = len(_list(_get(m, "objects", mpath), mpath, "'objects'"))
+    V, N = _declared_count(m, "test_cameras", mpath), _declared_count(m, "samples", mpath)
+    return min(MAX_NPZ_BYTES, 8 * (16 * T * (1 + K + V) + T * K + N * K))
 
 
 def read_ply(path: str) -> dict[str, np.ndarray]:
@@ -338,9 +392,8 @@ def _check_listed_files(root: str, mpath: str, m: dict[str, Any]) -> set[str]:
         rel = _str(_get(entry, "path", f"{mpath}: {what}"), mpath, f"{what}.path")
         size = _int(_get(entry, "bytes", f"{mpath}: {what}"), mpath, f"{what}.bytes", minimum=0)
         digest = _str(_get(entry, "sha256", f"{mpath}: {what}"), mpath, f"{what}.sha256")
-        if os.path.isabs(rel) or ".." in rel.replace("\\", "/").split("/"):
-            raise ExportFormatError(f"{mpath}: file path {rel!r} leaves the export directory")
-        p = os.path.join(root, rel)
+        # Absolute names, '..' and symbolic links leading out of the export are refused.
+        p = os.fspath(join_inside(root, rel, f"{what}.path", ExportFormatError, source=mpath, resolve=True))
         if not os.path.isfile(p):
             raise ExportFormatError(f"{p}: missing file named in the manifest")
         if os.path.getsize(p) != size or sha256_file(p) != digest:
@@ -423,7 +476,7 @@ def _read_scale_network(
     output width 1) and its ``ExportData`` fields (activations, threshold)."""
     where = f"{mpath}: scale_network"
     _dict(net, mpath, "'scale_network'")
-    z = _load_npz(named(_get(net, "file", where), "scale network file"))
+    z = _load_npz(named(_get(net, "file", where), "scale network file"), MAX_NPZ_BYTES)
     n = _int(_get(net, "layers", where), where, "layers", minimum=1)
     width_in, layers = num_objects - 1, []
     for i in range(n):  # each layer's input width is the previous layer's output width
@@ -445,11 +498,11 @@ def _read_scale_network(
 
 def _read_manifest(root: str, mpath: str, m: dict[str, Any], load_meshes: bool) -> ExportData:
     named = _file_namer(root, mpath, _check_listed_files(root, mpath, m))
-    arrays = _load_npz(named(_get(m, "arrays", mpath), "arrays file"))
     timestamps = _numbers(_get(m, "timestamps", mpath), mpath, "'timestamps'", (None,))
     T = len(timestamps)
     if T == 0:
         raise ExportFormatError(f"{mpath}: 'timestamps' is empty")
+    arrays = _load_npz(named(_get(m, "arrays", mpath), "arrays file"), _arrays_bytes(m, mpath, T))
     cam = _dict(_get(m, "camera", mpath), mpath, "'camera'")
     width = _int(_get(cam, "width", f"{mpath}: camera"), mpath, "camera.width", minimum=1)
     height = _int(_get(cam, "height", f"{mpath}: camera"), mpath, "camera.height", minimum=1)

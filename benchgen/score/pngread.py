@@ -5,6 +5,7 @@ files are decoded here: the IDAT stream is inflated with zlib and unfiltered (PN
 Sub, Up, Average, Paeth) along anti-diagonals, so every step is one vectorised numpy operation
 over all rows (pixel (r, x) depends only on (r, x-1), (r-1, x) and (r-1, x-1)). Going to Pillow
 directly is also several times faster per small file than ``imageio.imread`` (format detection per call).
+The IHDR's size is checked before anything is inflated, and inflating stops at the size it declares.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import zlib
 
 import numpy as np
 from PIL import Image
+
+from scenecore.dataset.images import pixels_problem
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: PNG colour types: 0 grey, 2 RGB, 3 palette, 4 grey + alpha, 6 RGBA.
@@ -75,27 +78,65 @@ def unfilter(filtered: np.ndarray, kinds: np.ndarray) -> np.ndarray:
     return raw.reshape(H + 1, W + 1, bpp)[1:, 1:].astype(np.uint8)
 
 
-def _decode_16bit(chunks: list[tuple[bytes, bytes]], width: int, height: int, channels: int) -> np.ndarray:
-    bpp = 2 * channels
+def max_png_bytes(height: int, width: int) -> int:
+    """Most bytes a PNG of ``height x width`` can legitimately take, the bound on reading one: its
+    16-bit RGBA rows stored uncompressed twice over (deflate's worst case adds 5 bytes per 64 KiB)
+    and 16 MiB of other chunks (text, an ICC profile)."""
+    return 2 * height * (8 * width + 1) + (1 << 24)
+
+
+def _inflate(idat: bytes, size: int) -> bytes:
+    """The ``size`` bytes the IDAT stream must inflate to. Inflating stops one byte past ``size``,
+    so a stream that would inflate to far more (a header that lies about the size, a
+    decompression bomb) is refused without being expanded."""
+    stream = zlib.decompressobj()
     try:
-        data = zlib.decompress(b"".join(p for k, p in chunks if k == b"IDAT"))
+        data = stream.decompress(idat, size + 1)
     except zlib.error as e:
         raise PngError(f"corrupt PNG ({e})") from None
-    if len(data) != height * (width * bpp + 1):
-        raise PngError(f"corrupt PNG ({len(data)} bytes of image data, expected {height * (width * bpp + 1)})")
+    if len(data) > size:
+        raise PngError(f"corrupt PNG (more image data than the {size} bytes its IHDR declares)")
+    if len(data) < size:
+        raise PngError(f"corrupt PNG ({len(data)} bytes of image data, expected {size})")
+    if not stream.eof:
+        raise PngError("corrupt PNG (truncated image data)")
+    return data
+
+
+def _decode_16bit(chunks: list[tuple[bytes, bytes]], width: int, height: int, channels: int) -> np.ndarray:
+    bpp = 2 * channels
+    data = _inflate(b"".join(p for k, p in chunks if k == b"IDAT"), height * (width * bpp + 1))
     rows = np.frombuffer(data, np.uint8).reshape(height, width * bpp + 1)
     raw = unfilter(rows[:, 1:].reshape(height, width, bpp), rows[:, 0])
     return raw.reshape(height, width, channels, 2).view(">u2")[..., 0].astype(np.uint16)
 
 
-def _header(data: bytes) -> tuple[list[tuple[bytes, bytes]], tuple[int, ...]]:
-    """Chunks and IHDR fields ``(width, height, bit depth, colour type, ..., interlace)``."""
+def _ihdr(data: bytes) -> tuple[int, ...]:
+    """IHDR fields ``(width, height, bit depth, colour type, ..., interlace)`` of the chunk every
+    PNG starts with, read without looking further."""
     if not data.startswith(PNG_SIGNATURE):
         raise PngError("not a PNG file")
-    chunks = _chunks(data)
-    if not chunks or chunks[0][0] != b"IHDR" or len(chunks[0][1]) != 13:
+    if data[8:16] != b"\0\0\0\x0dIHDR" or len(data) < 33:
         raise PngError("corrupt PNG (no IHDR chunk)")
-    return chunks, struct.unpack(">IIBBBBB", chunks[0][1])
+    if struct.unpack(">I", data[29:33])[0] != zlib.crc32(data[12:29]):
+        raise PngError("corrupt PNG (bad CRC in chunk b'IHDR')")
+    return struct.unpack(">IIBBBBB", data[16:29])
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    """``(H, W)`` of a PNG from its IHDR, so that a caller expecting a size can refuse another
+    before anything is inflated."""
+    width, height, *_ = _ihdr(data)
+    return height, width
+
+
+def _header(data: bytes) -> tuple[list[tuple[bytes, bytes]], tuple[int, ...]]:
+    """Chunks and IHDR fields ``(width, height, bit depth, colour type, ..., interlace)``; an
+    image of more pixels than a reader allocates is refused before anything is inflated."""
+    fields = _ihdr(data)
+    if p := pixels_problem(fields[0], fields[1]):
+        raise PngError(p)
+    return _chunks(data), fields
 
 
 def _pillow(data: bytes, mode: str | None) -> np.ndarray:

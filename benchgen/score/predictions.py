@@ -25,10 +25,12 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from scenecore import dataset as D
-from benchgen.score.pngread import PngError, decode_ids, decode_rgb
+from benchgen.score.pngread import PngError, decode_ids, decode_rgb, max_png_bytes, png_size
 
 METHOD_FILE = "method.json"
 SUFFIX = {"rgb": ".png", "depth": ".exr", "ids": ".png"}
+#: Most bytes of ``method.json`` (a name and notes copied into the report).
+MAX_METHOD_BYTES = 1 << 20
 
 
 class PredictionError(ValueError):
@@ -123,13 +125,16 @@ def check_candidate(c: Candidate, name: str, scene: D.Scene, num_views: int, has
 
 
 def read_method(pred: Path) -> dict:
-    """``PRED/method.json`` (an object; ``{}`` when absent)."""
+    """``PRED/method.json`` (an object; ``{}`` when absent), a regular file of at most
+    :data:`MAX_METHOD_BYTES`."""
     path = pred / METHOD_FILE
     if not path.exists():
         return {}
     try:
-        d = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        d = json.loads(D.read_regular(path, MAX_METHOD_BYTES))
+    except D.DatasetError as e:  # its message names the file
+        raise PredictionError(str(e)) from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise PredictionError(f"{path}: not valid JSON ({e})") from None
     if not isinstance(d, dict):
         raise PredictionError(f"{path}: expected a JSON object such as {{\"name\": ..., \"notes\": ...}}")
@@ -201,11 +206,18 @@ class PredictionDir:
         return Candidate(rgb, depth, ids)
 
     def _read(self, path: Path, kind: str) -> np.ndarray:
+        """One view's file, checked. Only a regular file of a size such an image can have is read,
+        and its header's size must match the scene's before anything is decoded: a FIFO, a link
+        to ``/dev/zero`` or a small file that inflates to gigabytes is one line naming it."""
         try:
             if kind == "depth":
-                a = D.read_depth(path)
+                size = D.exr_size(path)
             else:
-                a = (decode_rgb if kind == "rgb" else decode_ids)(path.read_bytes())
+                data = D.read_regular(path, max_png_bytes(self.scene.height, self.scene.width))
+                size = png_size(data)
+            if p := D.size_problem(path, size, self.scene):
+                raise PredictionError(p)
+            a = D.read_depth(path) if kind == "depth" else (decode_rgb if kind == "rgb" else decode_ids)(data)
         except PngError as e:
             raise PredictionError(f"{path}: {e}") from None
         except D.DatasetError as e:  # its message already names the file

@@ -26,7 +26,10 @@ Every write is atomic: a temporary file in the same directory, then ``os.replace
 """
 
 from ..atomic import atomic_path, atomic_write_bytes, atomic_write_json, publish_mode, read_json
-from .images import encode_png, read_depth, read_ids, read_image, read_rgb, rgb_from_image, write_depth, write_ids, write_rgb
+from .images import (
+    MAX_IMAGE_PIXELS, encode_png, exr_size, read_depth, read_ids, read_image, read_regular, read_rgb, rgb_from_image,
+    write_depth, write_ids, write_rgb,
+)
 from .manifest import (
     ids_problem, load_configuration, load_configurations, load_scene, load_valid_region, load_verification, read_frame,
     read_training_video, scene_from_json, scene_to_json, size_problem, write_configuration, write_frame, write_scene,
@@ -41,8 +44,8 @@ from .validation import iter_frame_files, validate
 
 __all__ = [
     "atomic_path", "atomic_write_bytes", "atomic_write_json", "publish_mode", "read_json",
-    "encode_png", "read_depth", "read_ids", "read_image", "read_rgb", "rgb_from_image", "write_depth", "write_ids",
-    "write_rgb",
+    "MAX_IMAGE_PIXELS", "encode_png", "exr_size", "read_depth", "read_ids", "read_image", "read_regular", "read_rgb",
+    "rgb_from_image", "write_depth", "write_ids", "write_rgb",
     "ids_problem", "load_configuration", "load_configurations", "load_scene", "load_valid_region", "load_verification",
     "read_frame", "read_training_video", "scene_from_json", "scene_to_json", "size_problem", "write_configuration",
     "write_frame", "write_scene", "write_valid_region", "write_verification",
