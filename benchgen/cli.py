@@ -104,7 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
         sub, "generate", _cmd_generate, "render a multi-ground-truth dataset from a preset or a spec file",
         "Render the training video, the exact valid-scale region, G ground-truth configurations and their test "
         "views, then verify every configuration. Rerunning the same command resumes: only missing files are rendered. "
-        "Exit code 0: all configurations verified; 1: a verification failed; 2: bad input.",
+        "Exit code 0: all configurations verified; 1: a verification failed; 2: bad input; 3: a file could not "
+        "be written or read (disk full, no permission).",
     )
     src = p.add_argument_group("scene (one of)")
     src.add_argument("--preset", help="a built-in spec (see 'benchgen presets')")
@@ -134,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
         f"Generate one dataset per preset ({', '.join(SUITE_PRESETS)}) under OUT/<preset>, resumable like 'generate', and "
         "print one table (objects, frames, the exact valid region's share of the paper's Eq. 1 sampling box, narrowest "
         "and widest per-object interval inside it, verification, wall time), also written to OUT/suite.md and "
-        "OUT/suite.json. Exit code 0: every configuration of every preset verified; 1: a verification failed; 2: bad input.",
+        "OUT/suite.json. Exit code 0: every configuration of every preset verified; 1: a verification failed; 2: bad input; "
+        "3: a file could not be written or read (disk full, no permission).",
     )
     p.add_argument("--out", required=True, help="directory holding one dataset per preset (created; resumed)")
     p.add_argument("--resolution", type=int, default=None, help="square image size in pixels for every preset (default: each preset's)")

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 import traceback
-from typing import Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 
 def blas_on_one_thread() -> None:
@@ -29,31 +32,88 @@ class UserError(Exception):
 #: FileExistsError: e.g. ``osn train --out`` naming an existing run without ``--resume``.
 USER_ERRORS: tuple[type[BaseException], ...] = (UserError, ValueError, FileNotFoundError, FileExistsError, KeyError)
 
+#: Exit code of a file the system would not read or write (disk full, quota, I/O error, no
+#: permission, read-only): distinct from 1 (a check failed) and 2 (bad input).
+OS_ERROR_EXIT = 3
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that cleanup runs as for Ctrl-C (worker processes
+    are ended, temporary files removed); the command then exits ``128 + signal number``."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def os_error_line(e: OSError) -> str:
+    """``FILE: cause`` for an error of the system: the file (both of a rename) and its reason."""
+    files = " -> ".join(str(f) for f in (e.filename, e.filename2) if f is not None)
+    cause = e.strerror or str(e)
+    return f"{files}: {cause}" if files else cause
+
+
+@contextlib.contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """Turn SIGTERM into :class:`Terminated` for the ``with`` block (main thread only; else a no-op).
+
+    A process forked inside the block inherits the handler; there it restores the default and
+    ends itself, as SIGTERM intends, rather than raising in a worker that would carry on.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    owner = os.getpid()
+
+    def handler(signum: int, _frame: Any) -> None:
+        if os.getpid() != owner:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise Terminated(signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
 
 def run_cli(
     parser: argparse.ArgumentParser, argv: Sequence[str] | None, prog: str
 ) -> int:
-    """Parse ``argv`` and call ``args.func(args)``; map user errors to one line and exit 2."""
+    """Parse ``argv`` and call ``args.func(args)``; map user errors to one line and exit 2, errors
+    of the system on a file (``OSError``) to one line and :data:`OS_ERROR_EXIT`, Ctrl-C to 130 and
+    SIGTERM to 143, after the command's cleanup ran."""
     args = parser.parse_args(argv)
     if not hasattr(args, "func"):
         parser.print_help()
         return 2
     try:
-        rc = args.func(args)
+        with sigterm_raises():
+            rc = args.func(args)
         return int(rc or 0)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         # Subcommands whose rerun needs a flag to continue (``osn train --resume``) say so.
         hint = getattr(args, "resume_hint", "run the same command again to resume")
-        print(f"{prog}: interrupted; {hint}", file=sys.stderr)
-        return 130
+        stopped = "terminated" if isinstance(e, Terminated) else "interrupted"
+        print(f"{prog}: {stopped}; {hint}", file=sys.stderr)
+        return 128 + e.signum if isinstance(e, Terminated) else 130
     except USER_ERRORS as e:
-        if getattr(args, "debug", False):
-            traceback.print_exc()
         msg = str(e) if not isinstance(e, KeyError) else f"missing key {e}"
-        # One line even when a library's message (embedded after the file name) spans several.
-        msg = " ".join(part.strip() for part in msg.splitlines() if part.strip())
-        print(f"{prog}: error: {msg}", file=sys.stderr)
-        return 2
+        return _one_line(prog, args, msg, 2)
+    except OSError as e:  # after USER_ERRORS: FileNotFoundError and FileExistsError are bad input
+        return _one_line(prog, args, os_error_line(e), OS_ERROR_EXIT)
+
+
+def _one_line(prog: str, args: argparse.Namespace, msg: str, code: int) -> int:
+    """Print ``PROG: error: MSG`` on one line (the traceback too under ``--debug``); return ``code``."""
+    if getattr(args, "debug", False):
+        traceback.print_exc()
+    # One line even when a library's message (embedded after the file name) spans several.
+    msg = " ".join(part.strip() for part in msg.splitlines() if part.strip())
+    print(f"{prog}: error: {msg}", file=sys.stderr)
+    return code
 
 
 def add_common(parser: argparse.ArgumentParser) -> None:

@@ -23,6 +23,7 @@ moves the camera and the objects between renders. Choices that keep the benchmar
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import multiprocessing.util
 import os
@@ -241,11 +242,22 @@ class Renderer:
             self.bpy.ops.render.render(write_still=True)
         self.render_seconds += time.perf_counter() - t0
         self.render_calls += 1
-        out, normal = read_multilayer_exr(self._exr)
+        out, normal = self._read_render()
         _, dirs = pixel_rays(self.built.scene.intrinsics.matrix(), camera_to_world, self.built.spec.width, self.built.spec.height)
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         out.facing = np.abs(np.einsum("pc,pc->p", normal.reshape(-1, 3), dirs)).reshape(out.ids.shape).astype(np.float32)
         return out
+
+    def _read_render(self) -> tuple[RenderOutput, np.ndarray]:
+        """The EXR Blender just wrote. Blender reports a failed write on its (silenced) console
+        only, so a full disk shows here, as a truncated file: an ``OSError`` naming it, not the
+        reader's messages about missing passes."""
+        try:
+            with _quiet():  # the reader prints its complaints about a truncated file itself
+                return read_multilayer_exr(self._exr)
+        except Exception as e:
+            raise OSError(errno.EIO, f"cannot read back Blender's render ({type(e).__name__}: {e}); is the disk full?",
+                          self._exr) from None
 
 
 def read_multilayer_exr(path: str) -> tuple[RenderOutput, np.ndarray]:

@@ -38,6 +38,7 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore.cli import UserError
+from scenecore.lock import output_lock
 from benchgen.scene.configs import choose_configurations
 from benchgen.scene.geometry import BuiltScene, build_scene
 from benchgen.scene.plausibility import PlausibilityChecker, check_authored_scene, room_scale_limits
@@ -313,7 +314,8 @@ def _check_output(root: Path, spec_text: str) -> None:
     existing = root / "spec.yaml"
     if existing.exists() and existing.read_text() != spec_text:
         raise UserError(f"{root} holds a dataset generated from a different spec or options; choose another --out")
-    if not existing.exists() and root.exists() and any(root.iterdir()):
+    # A run killed while writing spec.yaml, its first file, leaves only that write's temporary.
+    if not existing.exists() and root.exists() and any(not _TEMP_FILE.match(p.name) for p in root.iterdir()):
         raise UserError(f"{root} is not empty and holds no benchgen dataset; choose another --out")
 
 
@@ -377,8 +379,17 @@ def generate(
     are written, before their test views and verification)."""
     t0 = time.perf_counter()
     root = Path(root)
-    spec_text = dump_spec(spec)
     built, room_limits = prepare(spec)
+    with output_lock(root):  # before the clean-up: another run's temporary files are live
+        return _generate_locked(spec, root, built, room_limits, t0, workers, executor, address, progress, video_only, ground_truth)
+
+
+def _generate_locked(
+    spec: SceneSpec, root: Path, built: BuiltScene, room_limits: np.ndarray, t0: float, workers: int, executor: str,
+    address: str | None, progress: bool, video_only: bool, ground_truth: bool,
+) -> Summary:
+    """:func:`generate` once it holds ``root``'s lock."""
+    spec_text = dump_spec(spec)
     _check_output(root, spec_text)
     if root.exists():
         _remove_stale_temp_files(root)
@@ -453,6 +464,12 @@ def verify_dataset(root: str | Path, workers: int = 1, executor: str = "local", 
     spec_path = root / "spec.yaml"
     if not spec_path.exists():
         raise UserError(f"{spec_path}: missing; verify needs the spec the dataset was generated from")
+    with output_lock(root):  # it rewrites verification.json, which a generate of root also writes
+        return _verify_locked(root, spec_path, workers, executor, address, progress, t0)
+
+
+def _verify_locked(root: Path, spec_path: Path, workers: int, executor: str, address: str | None, progress: bool,
+                   t0: float) -> Summary:
     spec = spec_from_dict(read_spec_yaml(spec_path), str(spec_path))
     built, _ = prepare(spec)
     scene = D.load_scene(root)

@@ -18,10 +18,11 @@ from typing import Callable, Sequence
 import numpy as np
 
 from scenecore import dataset as D
+from scenecore.lock import output_lock
 from scenecore.scale_space import eq1_box
 from scenecore.validity import box_share
 from benchgen.render.generate import generate
-from benchgen.scene.spec import load_preset
+from benchgen.scene.spec import SceneSpec, load_preset
 
 #: The paper's scene suite: the Dynamic Indoor Scene protocol's four scenes, Chessboard++ with
 #: objects leaving the view, two Oxford-Multimotion-style stereo scenes and an NVIDIA-style
@@ -137,8 +138,14 @@ def run_suite(
 ) -> list[SuiteRow]:
     """Generate (or finish) every preset under ``out`` and write the table; returns its rows."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     specs = {p: load_preset(p).with_overrides(resolution=resolution, configs=configs) for p in presets}  # bad names fail before any render
+    with output_lock(out):  # suite.json and suite.md; each dataset under it has its own lock
+        return _run_suite_locked(out, specs, workers, executor, address, progress, echo)
+
+
+def _run_suite_locked(out: Path, specs: dict[str, SceneSpec], workers: int, executor: str, address: str | None,
+                      progress: bool, echo: Callable[[str], None]) -> list[SuiteRow]:
+    out.mkdir(parents=True, exist_ok=True)
     state_path = out / "suite.json"
     previous = {r["preset"]: r for r in (D.read_json(state_path)["rows"] if state_path.is_file() else [])}
     rows: list[SuiteRow] = []

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from scenecore.cli import UserError, subcommand
+from scenecore.lock import output_lock
 
 DESCRIPTION = (
     "Score a method's candidate solutions (docs/predictions.md: PRED/CAND/rgb/NAME.png per test view, optional "
@@ -25,7 +26,8 @@ def add_score_command(sub: argparse._SubParsersAction) -> argparse.ArgumentParse
     p = subcommand(sub, "score", _cmd_score, "score any method's renders: best of N against every ground truth", DESCRIPTION)
     p.add_argument("predictions", metavar="PRED", help="prediction directory: one sub-directory per candidate (docs/predictions.md)")
     p.add_argument("--data", required=True, metavar="DATASET", help="dataset directory written by 'benchgen generate'")
-    p.add_argument("--out", default=None, metavar="DIR", help="output directory; when not given, PRED-score beside PRED")
+    p.add_argument("--out", default=None, metavar="DIR", help="output directory; when not given, PRED-score beside PRED. A previous report there is "
+                   "replaced; a directory holding other files is refused")
     p.add_argument("--max-views", type=int, default=0, metavar="K",
                    help="score at most K test views, evenly spread as in 'osn evaluate' (0 = all; candidates need only these)")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS (it needs the weights installed by 'make setup')")
@@ -41,18 +43,24 @@ def _command(args: argparse.Namespace, out: Path) -> str:
 
 
 def _cmd_score(args: argparse.Namespace) -> int:
-    from scenecore import dataset as D
-    from benchgen.score.predictions import PredictionDir
-    from benchgen.score.report import results_table, write_report
-    from benchgen.score.scorer import score
-    from benchgen.score.truth import evaluated_views, load_truth
-
     if args.workers < 1 or args.max_views < 0:
         raise UserError(f"--workers must be >= 1 and --max-views >= 0, got {args.workers} and {args.max_views}")
     data, pred = Path(args.data), Path(args.predictions)
     if not data.is_dir():
         raise UserError(f"{data}: not a directory (expected a dataset written by 'benchgen generate')")
     out = Path(args.out) if args.out else pred.resolve().parent / f"{pred.resolve().name}-score"
+    with output_lock(out):  # one writer per report
+        return _score_locked(args, data, pred, out)
+
+
+def _score_locked(args: argparse.Namespace, data: Path, pred: Path, out: Path) -> int:
+    from scenecore import dataset as D
+    from benchgen.score.predictions import PredictionDir
+    from benchgen.score.report import check_out_dir, results_table, write_report
+    from benchgen.score.scorer import score
+    from benchgen.score.truth import evaluated_views, load_truth
+
+    check_out_dir(out)  # before the scoring, not after it
     scene = D.load_scene(data)
     # The structure of every candidate is checked before the ground truth is read (it is cheap).
     source = PredictionDir(pred, scene, [f.name for f in evaluated_views(scene, args.max_views)])

@@ -1,6 +1,9 @@
 """The output of ``benchgen score``: ``metrics.json``, ``report.md``, PNG plots, ``psnr_matrix.npy``.
 
-Every file is written atomically, and only after the whole scoring succeeded.
+They are written only after the whole scoring succeeded, together: into a temporary directory
+that then replaces the report directory whole (``scenecore.atomic.own_dir``), so a kill never
+leaves a new matrix beside an old report. A marker file (:data:`MARKER`) tells a report
+directory of ours, which is replaced, from a directory of the user's, which is refused.
 """
 
 from __future__ import annotations
@@ -14,10 +17,27 @@ from typing import Any
 import numpy as np
 
 from scenecore import dataset as D
+from scenecore.atomic import check_own_dir, own_dir, unmarked_report
 from benchgen.score.scorer import METRICS, ScoreResult
 
 FORMAT = "benchgen-score"
 VERSION = 1
+
+#: The file that marks a report directory written by ``benchgen score`` (replaced by the next one).
+MARKER = ".benchgen-score"
+_WHAT = "a benchgen score report"
+_FILES = ("report.md", "metrics.json", "psnr_matrix.npy", "best_of_n.png", "per_ground_truth.png")
+
+
+def _unmarked(out: Path) -> bool:
+    """A report directory of ours written before the marker existed."""
+    return unmarked_report(out, _FILES, "metrics.json", lambda m: isinstance(m, dict) and m.get("format") == FORMAT)
+
+
+def check_out_dir(out: str | Path) -> None:
+    """Refuse (``FileExistsError``, one line) an ``--out`` holding files ``benchgen score`` did not
+    write, before any scoring: :func:`write_report` checks again when it writes."""
+    check_own_dir(out, MARKER, _WHAT, _unmarked)
 
 
 def _json_safe(x: Any) -> Any:
@@ -144,19 +164,19 @@ def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plot
 
 
 def write_report(res: ScoreResult, out_dir: str | Path, method: dict[str, Any], command: str, dataset: str, predictions: str) -> Path:
-    """Write every output to ``out_dir`` (created); returns the path of ``report.md``.
+    """Write every output to ``out_dir`` (created, or a previous report replaced); returns the path
+    of ``report.md``. Raises ``FileExistsError`` when ``out_dir`` holds files of another origin.
 
     Adds ``report_s`` and ``total_s`` (the sum of every stage) to ``res.timings``.
     """
     t0 = time.perf_counter()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    np.save(buf, res.matrix)
-    D.atomic_write_bytes(out / "psnr_matrix.npy", buf.getvalue())
-    plots = write_plots(res, out)
-    res.timings["report_s"] = time.perf_counter() - t0
-    res.timings["total_s"] = sum(v for k, v in res.timings.items() if k != "total_s")
-    D.atomic_write_bytes(out / "report.md", report_markdown(res, method, command, plots).encode())
-    D.atomic_write_json(out / "metrics.json", metrics_json(res, method, command, dataset, predictions))
-    return out / "report.md"
+    with own_dir(out_dir, MARKER, _WHAT, _unmarked) as out:
+        buf = io.BytesIO()
+        np.save(buf, res.matrix)
+        D.atomic_write_bytes(out / "psnr_matrix.npy", buf.getvalue())
+        plots = write_plots(res, out)
+        res.timings["report_s"] = time.perf_counter() - t0
+        res.timings["total_s"] = sum(v for k, v in res.timings.items() if k != "total_s")
+        D.atomic_write_bytes(out / "report.md", report_markdown(res, method, command, plots).encode())
+        D.atomic_write_json(out / "metrics.json", metrics_json(res, method, command, dataset, predictions))
+    return Path(out_dir) / "report.md"

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
 import sys
 import time
 from pathlib import Path
 
 from scenecore.cli import UserError, subcommand
+from scenecore.lock import output_lock
 from osn.evaluate.bestofn import EvalConfig, evaluate
-from osn.evaluate.report import summary_lines, write_report
+from osn.evaluate.report import check_out_dir, summary_lines, write_report
 from osn.model.run import load_run
 from osn.sample.configurations import Samples, sample_configurations
 
@@ -28,6 +30,16 @@ def _cmd_sample(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    out = Path(args.out) if args.out else Path(args.run) / "report"
+    with contextlib.ExitStack() as held:  # one writer per report and per candidates directory
+        for d in (out, args.candidates):
+            if d is not None:
+                held.enter_context(output_lock(d))
+        return _evaluate_locked(args, out)
+
+
+def _evaluate_locked(args: argparse.Namespace, out: Path) -> int:
+    check_out_dir(out)  # before the evaluation, not after it
     cfg = EvalConfig(max_views=args.max_views, levels=args.levels, topk=args.topk, lpips=not args.no_lpips, seed=args.seed,
                      true_scales=not args.no_true_scales)
     run = load_run(args.run)
@@ -38,7 +50,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     res = evaluate(run, args.data, samples, cfg, candidates_dir=args.candidates)
     res.timings["total_s"] = time.perf_counter() - t0
-    out = Path(args.out) if args.out else Path(args.run) / "report"
     report = write_report(res, out, Path(args.run), "osn " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
     print("\n".join(summary_lines(res.table, res.valid_set, res.scale_error)))
     print(f"report: {report}")
@@ -64,7 +75,8 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="run directory of `osn train`")
     p.add_argument("--data", required=True, help="the benchgen dataset the run was trained on")
     p.add_argument("--samples", help="samples file (default RUN/samples.npz from `osn sample`)")
-    p.add_argument("--out", help="report directory (default RUN/report)")
+    p.add_argument("--out", help="report directory (default RUN/report); a previous report there is replaced, "
+                   "a directory holding other files is refused")
     p.add_argument("--max-views", type=int, default=30, help="evaluate at most this many test views, evenly spread (0 = all)")
     p.add_argument("--levels", type=int, default=EvalConfig.levels,
                    help="quantised scales per object in the layered search, at quantiles of the samples' scales "

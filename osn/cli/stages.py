@@ -30,6 +30,7 @@ from typing import Any, Callable, Protocol
 
 from scenecore.dataset import atomic_write_json
 from scenecore.cli import UserError
+from scenecore.lock import output_lock
 
 
 class Job(Protocol):
@@ -76,9 +77,17 @@ def run_stages(stages: list[Stage], workdir: str | Path, echo: Callable[[str], N
 
     Raises:
         UserError: a stage was started or finished with other values of its options.
+        OutputInUse: another process runs stages in ``workdir`` (:mod:`scenecore.lock`).
         ValueError: a stage needs a stage that is not an earlier background stage of ``stages``.
     """
-    work = Path(workdir)
+    # The whole work directory: a second job on it would take this one's live stages for killed
+    # ones and run them again beside it. Stages' outputs take their own locks (``osn demo``'s
+    # background ``benchgen generate`` locks the dataset it writes, not the work directory).
+    with output_lock(workdir):
+        return _run_stages_locked(stages, Path(workdir), echo)
+
+
+def _run_stages_locked(stages: list[Stage], work: Path, echo: Callable[[str], None]) -> dict[str, dict]:
     done_dir = work / ".done"
     done_dir.mkdir(parents=True, exist_ok=True)
     records: dict[str, dict] = {}

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from scenecore.cli import UserError, subcommand
 from scenecore.dataset import load_valid_region, read_json
+from scenecore.lock import output_lock
 from scenecore.validity import ValidRegion
 
 from osn.preprocess.inputs import SceneInputs, load_inputs
@@ -58,14 +59,15 @@ def train_on_dataset(
     Without a dataset (a user's video) ``inputs`` are required and no region is measured."""
     if dataset is None and inputs is None and not resume:
         raise UserError(f"{out}: give a benchgen DATASET or --inputs DIR (from `osn preprocess`)")
-    check_run_directory(out, resume)  # before the oracle inputs cost anything
-    if resume and dataset is None:
-        _refuse_silent_monitor_loss(Path(out))
-    region = dataset_region(dataset)
-    if not resume and inputs is None:
-        inputs = oracle_inputs(dataset)
-    return train(out, cfg, inputs=inputs, region=region, dataset=dataset, resume=resume,
-                 max_iterations=max_iterations, progress=progress)
+    with output_lock(out):  # from the run's checks to its end (train() takes it again, nested)
+        check_run_directory(out, resume)  # before the oracle inputs cost anything
+        if resume and dataset is None:
+            _refuse_silent_monitor_loss(Path(out))
+        region = dataset_region(dataset)
+        if not resume and inputs is None:
+            inputs = oracle_inputs(dataset)
+        return train(out, cfg, inputs=inputs, region=region, dataset=dataset, resume=resume,
+                     max_iterations=max_iterations, progress=progress)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:

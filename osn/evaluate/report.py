@@ -2,6 +2,9 @@
 
 Error is always put next to time: the training curve (PSNR and valid-set IoU against wall
 time, from ``metrics.jsonl``) and the search time against N are first-class plots.
+
+The files change together: they are written into a temporary directory that replaces the report
+directory whole, and only a directory holding :data:`MARKER` (ours) is replaced.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from typing import Any
 import io
 import numpy as np
 
+from scenecore.atomic import check_own_dir, own_dir, unmarked_report
 from scenecore.dataset import atomic_write_bytes, atomic_write_json, read_json
 from osn.train.environment import describe
 from benchgen.score.report import BY_OBJECT_NOTE, by_object_table
@@ -215,10 +219,35 @@ def limits_lines(limits: list[dict[str, Any]], rows: int = 8) -> list[str]:
     return lines + [""]
 
 
+#: The file that marks a report directory written by ``osn evaluate`` (replaced by the next one).
+MARKER = ".osn-report"
+_WHAT = "an osn evaluation report"
+_FILES = ("report.md", "metrics.json", "training_curve.png", "best_of_n.png", "search_time.png", "validity_profile.png")
+
+
+def _unmarked(out: Path) -> bool:
+    """A report directory of ours written before the marker existed."""
+    return unmarked_report(out, _FILES, "metrics.json",
+                           lambda m: isinstance(m, dict) and str(m.get("command", "")).startswith("osn "))
+
+
+def check_out_dir(out: str | Path) -> None:
+    """Refuse (``FileExistsError``, one line) a report directory holding files ``osn`` did not
+    write, before the evaluation: :func:`write_report` checks again when it writes."""
+    check_own_dir(out, MARKER, _WHAT, _unmarked)
+
+
 def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: str) -> Path:
-    """Write ``report.md``, ``metrics.json`` and the plots to ``out_dir``; returns the report path."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Write ``report.md``, ``metrics.json`` and the plots to ``out_dir`` (created, or a previous
+    report replaced); returns the report path. Raises ``FileExistsError`` when ``out_dir`` holds
+    files of another origin."""
+    with own_dir(out_dir, MARKER, _WHAT, _unmarked) as out:
+        _write_report_files(res, out, run_dir, command)
+    return Path(out_dir) / "report.md"
+
+
+def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str) -> None:
+    """Every file of the report into ``out`` (the temporary directory of :func:`write_report`)."""
     train_log = read_metrics(run_dir / "metrics.jsonl")  # lines cut by a kill are skipped
     plots = write_plots(res, train_log, out)
     train_s = train_log[-1]["wall_time"] if train_log else float("nan")
@@ -262,4 +291,3 @@ def write_report(res: EvalResult, out_dir: str | Path, run_dir: Path, command: s
     lines += [f"![{p}]({p})" for p in plots]
     lines += ["", "`metrics.json` holds every number here, per ground truth, with the timings."]
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode())
-    return out / "report.md"

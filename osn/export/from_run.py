@@ -21,6 +21,7 @@ from scenecore import dataset as D
 from scenecore import export_format as core
 from scenecore.cameras import invert_pose
 from scenecore.export_format import ExportFormatError
+from scenecore.lock import output_lock
 from osn.export.writer import ExportObject, ExportScene, ScaleNetwork, write_export
 from osn.model.placement import novel_to_training_camera
 from osn.model.run import TrainedRun, load_run
@@ -184,7 +185,12 @@ def export_run(
     """
     if samples is not None and samples < 0:
         raise ValueError(f"the number of exported samples must be >= 0, got {samples}")
-    run = Path(run_dir)
+    with output_lock(out_dir):  # from the start, so a second export stops before its costly sampling
+        return _export_run_locked(Path(run_dir), out_dir, resolution, samples, seed, echo, dataset)
+
+
+def _export_run_locked(run: Path, out_dir: str | Path, resolution: int | None, samples: int | None, seed: int,
+                       echo: Callable[[str], None], dataset: str | Path | None) -> Path:
     trained = load_run(run)
     inputs = trained.inputs
     grids = {}

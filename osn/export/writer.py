@@ -14,11 +14,9 @@ its own numpy). Format description: docs/export-and-addon.md.
 
 from __future__ import annotations
 
+import errno
 import io
 import math
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +26,9 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore import export_format as core
+from scenecore.atomic import atomic_dir
 from scenecore.export_format import ExportFormatError
+from scenecore.lock import output_lock
 
 
 @dataclass
@@ -195,7 +195,26 @@ def _write_vdb(path: Path, obj: ExportObject) -> None:
     col.copyFromArray(np.ascontiguousarray(_srgb_to_linear(obj.colour).transpose(2, 1, 0, 3), dtype=np.float32))
     col.name = "color"
     col.transform = vdb.createLinearTransform(M)
-    vdb.write(str(path), grids=[dens, col])
+    with D.atomic_path(path, suffix=".vdb") as tmp:
+        vdb.write(str(tmp), grids=[dens, col])
+        _check_vdb(vdb, tmp, [dens, col])
+
+
+def _check_vdb(vdb: Any, path: Path, grids: list[Any]) -> None:
+    """Read ``path`` back and compare it with the ``grids`` written: OpenVDB's writer returns
+    normally on a full disk, leaving a truncated file that no reader opens.
+
+    Raises:
+        OSError: naming ``path``; the write is then abandoned (the caller removes the file).
+    """
+    try:
+        back, _ = vdb.readAll(str(path))
+        same = sorted((g.name, g.activeVoxelCount()) for g in back) == sorted((g.name, g.activeVoxelCount()) for g in grids)
+    except Exception as e:  # OpenVDB raises KeyError, RuntimeError ... on a damaged file
+        raise OSError(errno.EIO, f"OpenVDB wrote a file that does not read back ({type(e).__name__}); is the disk full?",
+                      str(path)) from None
+    if not same:
+        raise OSError(errno.EIO, "OpenVDB wrote a file whose grids differ from those written; is the disk full?", str(path))
 
 
 def object_mesh(obj: ExportObject) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -242,19 +261,13 @@ def write_export(out_dir: str | Path, scene: ExportScene, echo: Callable[[str], 
     """
     scene.check()
     out = Path(out_dir).resolve()
-    if out.exists() and not (out / core.MANIFEST_NAME).is_file():
-        raise ExportFormatError(f"{out}: exists and is not an OSN export; choose another --out")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_siblings(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", suffix=".partial", dir=out.parent))
     say = echo or (lambda _msg: None)
     t0 = time.perf_counter()
-    try:
-        _write_contents(tmp, scene, say)
-        _swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with output_lock(out):  # another export's temporary siblings are live until it ends
+        if out.exists() and not (out / core.MANIFEST_NAME).is_file():
+            raise ExportFormatError(f"{out}: exists and is not an OSN export; choose another --out")
+        with atomic_dir(out) as tmp:  # a killed export leaves the previous one, or none
+            _write_contents(tmp, scene, say)
     say(f"export: wrote {out} in {time.perf_counter() - t0:.1f} s")
     return out / core.MANIFEST_NAME
 
@@ -355,48 +368,3 @@ def _manifest(scene: ExportScene, objects: list[dict], net: dict | None, files: 
         "files": files,
         "meta": scene.meta,
     }
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-def _remove_stale_siblings(out: Path) -> None:
-    """Delete temporary siblings of ``out`` left by a killed export (``kill -9`` skips cleanup).
-
-    ``.NAME.PID.*.partial`` (being written) and ``.NAME.old-PID`` (the previous export during
-    the swap) are removed when process PID no longer exists, so a concurrent export to the same
-    directory keeps its own files.
-    """
-    for p in out.parent.glob(f".{out.name}.*"):
-        rest = p.name[len(out.name) + 2 :]
-        if rest.endswith(".partial"):
-            pid_text = rest.split(".", 1)[0]
-        elif rest.startswith("old-"):
-            pid_text = rest[4:]
-        else:
-            continue
-        if not pid_text.isdigit() or not _pid_alive(int(pid_text)):
-            shutil.rmtree(p, ignore_errors=True)
-
-
-def _swap_into_place(tmp: Path, out: Path) -> None:
-    """Rename the finished temporary directory to ``out``, replacing a previous export."""
-    D.publish_mode(tmp)  # mkdtemp makes it private; an export is shared as the umask allows
-    if not out.exists():
-        os.rename(tmp, out)
-        return
-    old = out.with_name(f".{out.name}.old-{os.getpid()}")
-    os.rename(out, old)
-    try:
-        os.rename(tmp, out)
-    except BaseException:
-        os.rename(old, out)
-        raise
-    shutil.rmtree(old, ignore_errors=True)

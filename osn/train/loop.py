@@ -40,6 +40,7 @@ import numpy as np
 import yaml
 
 from scenecore import dataset as D
+from scenecore.lock import output_lock
 from scenecore.validity import ValidRegion
 
 from benchgen.score.metrics import psnr_from_mse as psnr
@@ -169,29 +170,30 @@ def train(
         progress: show a progress bar.
     """
     out = Path(out)
-    check_run_directory(out, resume)
-    if resume:
-        cfg = TrainConfig.from_yaml(out / "config.yaml", run_config=True)
-        inputs = load_inputs(out / "inputs")
-    else:
-        if inputs is None:
-            raise ValueError(f"{out}: a new run needs its per-object inputs (oracle or preprocessed)")
-        cfg = cfg or TrainConfig()
-    device = pick_device(cfg.device)
-    env = environment(device)
-    if resume:
-        _record_resume(out, env)
-    else:
-        _start_run(out, cfg, inputs, dataset, env)
-    trainer = Trainer(inputs, cfg, device)
-    if resume:
-        # Read onto the CPU: load_state_dict moves weights and optimiser state to the device
-        # itself, and the RNG states it restores must stay on the CPU (a CUDA resume crashed).
-        trainer.load_state_dict(read_checkpoint(out / "checkpoint.pt", "cpu"))
-        truncate_metrics(out / "metrics.jsonl", trainer.iteration)
-    monitor = TrainingMonitor(trainer, region)
-    stop = min(trainer.total, max_iterations) if max_iterations is not None else trainer.total
-    _iterate(trainer, monitor, out, stop, progress)
+    with output_lock(out):  # one writer per run: metrics, config and checkpoint from one run only
+        check_run_directory(out, resume)
+        if resume:
+            cfg = TrainConfig.from_yaml(out / "config.yaml", run_config=True)
+            inputs = load_inputs(out / "inputs")
+        else:
+            if inputs is None:
+                raise ValueError(f"{out}: a new run needs its per-object inputs (oracle or preprocessed)")
+            cfg = cfg or TrainConfig()
+        device = pick_device(cfg.device)
+        env = environment(device)
+        if resume:
+            _record_resume(out, env)
+        else:
+            _start_run(out, cfg, inputs, dataset, env)
+        trainer = Trainer(inputs, cfg, device)
+        if resume:
+            # Read onto the CPU: load_state_dict moves weights and optimiser state to the device
+            # itself, and the RNG states it restores must stay on the CPU (a CUDA resume crashed).
+            trainer.load_state_dict(read_checkpoint(out / "checkpoint.pt", "cpu"))
+            truncate_metrics(out / "metrics.jsonl", trainer.iteration)
+        monitor = TrainingMonitor(trainer, region)
+        stop = min(trainer.total, max_iterations) if max_iterations is not None else trainer.total
+        _iterate(trainer, monitor, out, stop, progress)
     if trainer.fallbacks:
         log.warning("%d field steps used a fallback scale vector (no candidate above %.2f)", trainer.fallbacks, cfg.valid_threshold)
     return out
