@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Sequence
 
-from scenecore.cli import UserError, blas_on_one_thread, run_cli, subcommand
+from scenecore.cli import UserError, blas_on_one_thread, deprecated_alias, run_cli, subcommand
 
 blas_on_one_thread()  # before the import below brings numpy in
 
@@ -32,7 +32,7 @@ def _load_spec(args: argparse.Namespace):
     if (args.preset is None) == (args.spec is None):
         raise UserError("give exactly one of --preset NAME or --spec FILE")
     spec = load_preset(args.preset) if args.preset else load_spec(args.spec)
-    return spec.with_overrides(resolution=args.resolution, samples=args.samples, configs=args.configs, seed=args.seed)
+    return spec.with_overrides(resolution=args.resolution, samples=args.cycles_samples, configs=args.configs, seed=args.seed)
 
 
 def _report(summary) -> int:
@@ -112,13 +112,14 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--spec", help="a YAML spec file (docs/benchgen.md)")
     p.add_argument("--out", required=True, help="output dataset directory (created; resumed if it holds the same spec)")
     p.add_argument("--resolution", type=int, default=None, help="square image size in pixels (default: the spec's)")
-    p.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default: the spec's)")
+    p.add_argument("--cycles-samples", type=int, default=None, help="Cycles samples per pixel (default: the spec's)")
     p.add_argument("--configs", type=int, default=None, help="number G of ground-truth configurations (default: the spec's)")
     p.add_argument("--seed", type=int, default=None, help="seed of the configuration sampler and the renderer (default: the spec's)")
     p.add_argument("--video-only", action="store_true",
                    help="render the training video alone (frames, depth, ids): no valid region, configurations, test views "
                    "or verification; e.g. SfM's input at a higher resolution. Rerun without it to render the rest")
     _add_run_options(p)
+    deprecated_alias(p, "--samples", "--cycles-samples")
     p = subcommand(
         sub, "verify", _cmd_verify, "re-render every configuration's training frames and check invariance",
         "Rebuild the scene from DATASET/spec.yaml, re-render each configuration's training frames and compare them with "

@@ -49,7 +49,7 @@ TIMING = re.compile(r"^(timings\..*|train_seconds|curves\.search_seconds_per_vie
 
 
 def demo_cmd(args: argparse.Namespace, work: Path) -> list[str]:
-    return [sys.executable, "-m", "osn.cli", "demo", "--preset", args.preset, "--inputs", "oracle", *shlex.split(args.demo_args),
+    return [sys.executable, "-m", "osn.cli", "demo", "--preset", args.preset, "--inputs-from", "oracle", *shlex.split(args.demo_args),
             "--work", str(work)]
 
 
@@ -142,7 +142,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the random kill moments")
     ap.add_argument("--stages", default=",".join(DEFAULT_STAGES), help=f"comma-separated, from {', '.join(STAGES)}")
     ap.add_argument("--preset", default="tiny", help="benchgen preset given to `osn demo`")
-    ap.add_argument("--demo-args", default="", help="more `osn demo` options, e.g. '--iterations 150 -n 60'")
+    ap.add_argument("--demo-args", default="", help="more `osn demo` options, e.g. '--field-iterations 150 -n 60'")
     ap.add_argument("--root", default=None, help="where the work directories go (default: a new temporary directory)")
     ap.add_argument("--reference", default=None,
                     help="a finished demo's work directory, made by the same options, to use instead of running one")

@@ -37,7 +37,7 @@ def osn_on(preset: str, dataset: Path, work: Path, workers: int) -> dict:
     link = work / "dataset"
     if not link.exists():
         link.symlink_to(dataset.resolve(), target_is_directory=True)
-    cmd = [sys.executable, "-m", "osn.cli", "demo", "--work", str(work), "--preset", preset, "--resolution", "64", "--inputs", "oracle",
+    cmd = [sys.executable, "-m", "osn.cli", "demo", "--work", str(work), "--preset", preset, "--resolution", "64", "--inputs-from", "oracle",
            "--workers", str(workers), "--max-views", str(MAX_VIEWS)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -120,6 +120,39 @@ def add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--debug", action="store_true", help="show the full traceback on errors")
 
 
+class DeprecatedAlias(argparse.Action):
+    """An old spelling of an option, kept for one release so old scripts still run: hidden from
+    ``--help``, parsed exactly as ``target`` (the new spelling's action, whose ``dest`` it shares),
+    and one ``WARNING`` line on stderr naming the new spelling. ``default`` is SUPPRESS, so an
+    alias not given leaves the new option's default alone (a positional one then is not called)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, *, target: argparse.Action, new: str,
+                 nargs: int | str | None = None, metavar: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=target.nargs if nargs is None else nargs, const=target.const,
+                         default=argparse.SUPPRESS, type=target.type, choices=target.choices, required=False,
+                         help=argparse.SUPPRESS, metavar=metavar or target.metavar)
+        self.target, self.new = target, new
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        old = option_string or f"the positional {self.metavar or self.dest.upper()}"
+        print(f"WARNING {parser.prog}: {old} is deprecated and goes in the next release; use {self.new}", file=sys.stderr)
+        self.target(parser, namespace, values, option_string)
+
+
+def deprecated_alias(parser: argparse.ArgumentParser, old: str, new: str, **positional: Any) -> None:
+    """Accept ``old`` as a hidden, warning spelling of ``parser``'s option ``new`` (added before).
+
+    ``old`` not starting with ``-`` is a former positional: it takes ``new``'s dest, and
+    ``positional`` gives its ``nargs`` and ``metavar`` (the name the warning shows). ``new`` may
+    carry a metavar for the message (``"--data DATASET"``)."""
+    target = parser._option_string_actions[new.split()[0]]
+    if old.startswith("-"):
+        parser.add_argument(old, action=DeprecatedAlias, dest=target.dest, target=target, new=new)
+    else:
+        parser.add_argument(target.dest, action=DeprecatedAlias, target=target, new=new, **positional)
+
+
 def subcommand(
     subparsers: argparse._SubParsersAction, name: str, func: Callable[[argparse.Namespace], int | None], help: str, description: str | None = None
 ) -> argparse.ArgumentParser:

@@ -35,7 +35,7 @@ from scenecore.export_format import read_export
 from scenecore.lock import read_holder
 from tests.test_robustness import REPO, TINY_TOTAL, TINY_TRAIN, _assert_user_error, _cli, _cli_many, _cmd
 
-DEMO = ["demo", "--preset", "tiny", "--inputs", "oracle", "-n", "5", "--max-views", "1", "--workers", "1"]
+DEMO = ["demo", "--preset", "tiny", "--inputs-from", "oracle", "-n", "5", "--max-views", "1", "--workers", "1"]
 
 
 def _start(log: Path, tool: str, *args: str | Path) -> subprocess.Popen:
@@ -166,12 +166,12 @@ def train_race(tiny_dataset: Path, configs: tuple[Path, Path], tmp_path_factory)
     ``--out`` meanwhile; then the first continued to its end."""
     d = tmp_path_factory.mktemp("lock_train")
     run, log = d / "run", d / "first.log"
-    first = _start(log, "osn", "train", tiny_dataset, "--out", run, "--config", configs[0])
+    first = _start(log, "osn", "train", "--data", tiny_dataset, "--out", run, "--config", configs[0])
     try:
         _wait_holding(first, run, log)
         _signal(first, signal.SIGSTOP)
-        second = _cli_many([("osn", "train", tiny_dataset, "--out", run, "--config", configs[1]),
-                            ("osn", "train", tiny_dataset, "--out", run, "--resume")])
+        second = _cli_many([("osn", "train", "--data", tiny_dataset, "--out", run, "--config", configs[1]),
+                            ("osn", "train", "--data", tiny_dataset, "--out", run, "--resume")])
         _finish(first, log)
     finally:
         _signal(first, signal.SIGKILL)
@@ -191,12 +191,12 @@ def test_second_train_on_the_same_out_is_refused_and_the_first_completes(train_r
 def test_train_killed_holding_the_lock_is_taken_over(tiny_dataset: Path, configs: tuple[Path, Path], tmp_path: Path) -> None:
     """The next run takes the dead one's lock: ``--resume`` when it left a checkpoint, else a new run."""
     run, log = tmp_path / "run", tmp_path / "killed.log"
-    first = _start(log, "osn", "train", tiny_dataset, "--out", run, "--config", configs[0])
+    first = _start(log, "osn", "train", "--data", tiny_dataset, "--out", run, "--config", configs[0])
     _wait_holding(first, run, log)
     _kill(first)
     assert read_holder(run)["pid"] == first.pid
     again = ["--resume"] if (run / "checkpoint.pt").exists() else ["--config", configs[0]]
-    r = _cli("osn", "train", tiny_dataset, "--out", run, *again)
+    r = _cli("osn", "train", "--data", tiny_dataset, "--out", run, *again)
     assert r.returncode == 0, r.stderr[-2000:]
     _assert_run(run, TINY_TRAIN)
     _no_locks(tmp_path)
@@ -236,10 +236,10 @@ def test_second_export_to_the_same_out_is_refused_and_a_killed_export_is_taken_o
     (its lock left stale) and the next export takes the lock over and completes."""
     run = train_race[0]
     out, log = tmp_path / "export", tmp_path / "first.log"
-    first = _start(log, "osn", "export", run, "--out", out, "--samples", "5")
-    _refused_while_stopped_then_kill(first, out, log, ("osn", "export", run, "--out", out, "--samples", "7"),
+    first = _start(log, "osn", "export", run, "--out", out, "-n", "5")
+    _refused_while_stopped_then_kill(first, out, log, ("osn", "export", run, "--out", out, "-n", "7"),
                                      "osn.cli export", tmp_path)
-    r = _cli("osn", "export", run, "--out", out, "--samples", "7")
+    r = _cli("osn", "export", run, "--out", out, "-n", "7")
     assert r.returncode == 0, r.stderr[-2000:]
     _assert_export(out, 7)
     _no_locks(tmp_path)
@@ -281,7 +281,7 @@ def test_second_demo_on_the_same_work_is_refused_and_a_killed_demo_is_taken_over
     are left stale) and the next demo takes them over, resumes, and completes: report, export and
     add-on, its own background ``benchgen generate`` (which locks the dataset it writes) included."""
     work, log = tmp_path / "work", tmp_path / "first.log"
-    demo = [*DEMO, "--train-config", configs[0], "--work", work]
+    demo = [*DEMO, "--config", configs[0], "--work", work]
     first = _start(log, "osn", *demo)
     _refused_while_stopped_then_kill(first, work, log, ("osn", *demo), "osn.cli demo", tmp_path,
                                      also=lambda: (work / "run" / "checkpoint.pt").exists())

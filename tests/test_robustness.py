@@ -156,7 +156,7 @@ def train_config(tmp_path_factory) -> Path:
 def trained(tiny_dataset: Path, train_config: Path, tmp_path_factory) -> Path:
     """An uninterrupted ``osn train`` run (the reference of the kill tests) with ``osn sample`` output."""
     run = tmp_path_factory.mktemp("robust_run") / "run"
-    r = _cli("osn", "train", tiny_dataset, "--out", run, "--config", train_config)
+    r = _cli("osn", "train", "--data", tiny_dataset, "--out", run, "--config", train_config)
     assert r.returncode == 0, r.stderr[-3000:]
     r = _cli("osn", "sample", run, "-n", "20")
     assert r.returncode == 0, r.stderr[-3000:]
@@ -282,7 +282,7 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
     run = copy("resume_truncated_checkpoint")
     data = (run / "checkpoint.pt").read_bytes()
     (run / "checkpoint.pt").write_bytes(data[: len(data) // 3])
-    jobs["resume_truncated_checkpoint"] = (("osn", "train", tiny_dataset, "--out", run, "--resume"), run / "checkpoint.pt",
+    jobs["resume_truncated_checkpoint"] = (("osn", "train", "--data", tiny_dataset, "--out", run, "--resume"), run / "checkpoint.pt",
                                            "not a readable osn checkpoint")
 
     run = copy("checkpoint_other_layout")
@@ -300,7 +300,7 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
         torch.save(ck, run / "checkpoint.pt")
         call = {"sample": ("osn", "sample", run), "export": ("osn", "export", run, "--out", base / f"export_{cmd}"),
                 "evaluate": ("osn", "evaluate", run, "--data", tiny_dataset, "--out", base / f"report_{cmd}", *EVAL_ARGS),
-                "resume": ("osn", "train", tiny_dataset, "--out", run, "--resume")}[cmd]
+                "resume": ("osn", "train", "--data", tiny_dataset, "--out", run, "--resume")}[cmd]
         jobs[f"checkpoint_runs_code_{cmd}"] = (call, run / "checkpoint.pt", "refused")
 
     data = base / "data_corrupt_test_view"
@@ -311,7 +311,7 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
     jobs["evaluate_corrupt_test_view"] = (("osn", "evaluate", trained, "--data", data, "--out", base / "report", *EVAL_ARGS),
                                           view, "cannot read the image")
 
-    jobs["train_onto_existing_run"] = (("osn", "train", tiny_dataset, "--out", trained), trained, "already holds a run; pass --resume")
+    jobs["train_onto_existing_run"] = (("osn", "train", "--data", tiny_dataset, "--out", trained), trained, "already holds a run; pass --resume")
 
     other = base / "not_an_export"
     other.mkdir()
@@ -379,11 +379,11 @@ def _metrics(run: Path) -> list[dict]:
 
 def test_train_killed_then_resumed_equals_uninterrupted(trained: Path, tiny_dataset: Path, train_config: Path, tmp_path: Path) -> None:
     run = tmp_path / "killed"
-    proc = _popen("osn", "train", tiny_dataset, "--out", run, "--config", train_config)
+    proc = _popen("osn", "train", "--data", tiny_dataset, "--out", run, "--config", train_config)
     assert _kill_when(proc, lambda: (run / "checkpoint.pt").exists()), "training ended before it could be killed"
     killed_at = torch.load(run / "checkpoint.pt", weights_only=True)["iteration"]
     assert killed_at < TINY_TOTAL
-    r = _cli("osn", "train", tiny_dataset, "--out", run, "--resume")
+    r = _cli("osn", "train", "--data", tiny_dataset, "--out", run, "--resume")
     assert r.returncode == 0, r.stderr[-3000:]
     a = torch.load(trained / "checkpoint.pt", weights_only=True)
     b = torch.load(run / "checkpoint.pt", weights_only=True)
@@ -431,15 +431,15 @@ def test_sample_and_evaluate_rerun_after_kill_equal_uninterrupted(trained: Path,
 
 def test_export_killed_keeps_previous_export_and_rerun_equals_it(trained: Path, tmp_path: Path) -> None:
     export = tmp_path / "export"
-    r = _cli("osn", "export", trained, "--out", export, "--samples", "4")
+    r = _cli("osn", "export", trained, "--out", export, "-n", "4")
     assert r.returncode == 0, r.stderr[-3000:]
     before = _export_fingerprint(export)
-    proc = _popen("osn", "export", trained, "--out", export, "--samples", "4")
+    proc = _popen("osn", "export", trained, "--out", export, "-n", "4")
     partial = lambda: any(tmp_path.glob(".export.*.partial"))  # noqa: E731
     assert _kill_when(proc, partial), "export ended before it could be killed"
     assert any(tmp_path.glob(".export.*.partial"))  # the kill left its temporary directory...
     assert _export_fingerprint(export) == before  # ...and the previous export untouched
-    r = _cli("osn", "export", trained, "--out", export, "--samples", "4")
+    r = _cli("osn", "export", trained, "--out", export, "-n", "4")
     assert r.returncode == 0, r.stderr[-3000:]
     assert _export_fingerprint(export) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]  # stale temporaries removed

@@ -78,7 +78,7 @@ def test_training_yaml_with_a_value_out_of_range_is_one_line(tiny_dataset: Path,
         cfg.write_text(yaml.safe_dump({key: value}))
         with pytest.raises(ValueError, match=rf"{cfg}: training config: {key} must be"):
             TrainConfig.from_yaml(cfg)
-    r = _cli("osn", "train", tiny_dataset, "--out", tmp_path / "run", "--config", tmp_path / "w_opacity.yaml")
+    r = _cli("osn", "train", "--data", tiny_dataset, "--out", tmp_path / "run", "--config", tmp_path / "w_opacity.yaml")
     _assert_user_error(r, tmp_path / "w_opacity.yaml", "w_opacity must be a number >= 0, got nan")
     assert not (tmp_path / "run").exists()
 

@@ -1,4 +1,5 @@
-"""``osn demo``: the whole pipeline on the embedded Gnome-House scene, resumable stage by stage.
+"""``osn demo``: the whole pipeline on a preset (the embedded Gnome-House scene by default) or on
+the user's own scene spec (``--spec FILE``), resumable stage by stage.
 
 benchgen generate (the video, the exact region, the configurations) -> per-object SfM (pycolmap)
 and oracle inputs -> train -> sample N -> best-of-N evaluation and report -> export -> Blender
@@ -12,11 +13,12 @@ interrupted one (generation and training resume internally).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
 import shlex
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -25,12 +27,13 @@ import torch
 
 from scenecore import dataset as D
 from scenecore.atomic import atomic_write_json
-from scenecore.cli import UserError, subcommand
+from scenecore.cli import UserError, deprecated_alias, subcommand
 
 from benchgen.render.generate import generate
-from benchgen.scene.spec import load_preset, spec_from_dict
+from benchgen.scene.spec import SceneSpec, dump_spec, load_preset, load_spec, spec_from_dict
+from osn.cli.preprocess import add_sfm_size_options, auto_or_int
 from osn.cli.stages import BackgroundCommand, Stage, run_stages
-from osn.cli.train import train_on_dataset
+from osn.cli.train import add_config_options, train_on_dataset, training_config
 from osn.evaluate.bestofn import EvalConfig, evaluate
 from osn.evaluate.report import summary_lines, write_report
 from osn.export.addon_build import build_addon_zip
@@ -38,28 +41,12 @@ from osn.export.from_run import export_run
 from osn.model.run import load_run
 from osn.preprocess.inputs import InputsError, load_inputs, save_inputs, with_video
 from osn.preprocess.oracle import oracle_inputs
-from osn.preprocess.sfm import PreprocessConfig
+from osn.preprocess.sfm import PreprocessConfig, pipeline_config
 from osn.preprocess.video import preprocess_dataset, training_inputs
 from osn.sample.configurations import Samples, sample_configurations
-from osn.train import TrainConfig, read_metrics
+from osn.train import read_metrics
 
 log = logging.getLogger(__name__)
-
-
-def _scaled_config(iterations: int | None, config_file: str | None) -> Any:
-    """Training config, with every phase length scaled so field iterations total ``iterations``."""
-    cfg = TrainConfig.from_yaml(config_file) if config_file else TrainConfig()
-    if iterations:
-        total = cfg.stage1_iters + cfg.rounds * cfg.field_iters
-        f = iterations / max(total, 1)
-        cfg = replace(
-            cfg,
-            stage1_iters=max(1, round(cfg.stage1_iters * f)),
-            field_iters=max(1, round(cfg.field_iters * f)),
-            scale_iters=max(1, round(cfg.scale_iters * f)),
-            final_scale_iters=max(1, round(cfg.final_scale_iters * f)),
-        )
-    return cfg
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -79,7 +66,7 @@ def demo_command(args: argparse.Namespace) -> str:
     for k, v in sorted(vars(args).items()):
         if k in ("func", "debug", "resume_hint") or v is None:
             continue
-        parts += ["-n" if k == "n" else f"--{k.replace('_', '-')}", str(v)]
+        parts += ["-n" if k == "n" else f"--{k.replace('_', '-')}", str(v)]  # every dest is its option's name
     return shlex.join(parts)
 
 
@@ -129,9 +116,30 @@ class DemoPaths:
 # refuse changed options).
 
 
-def _demo_spec(args: argparse.Namespace, resolution: int | None, configs: int | None):
-    """The preset with the demo's overrides (None keeps the preset's value)."""
-    spec = load_preset(args.preset)
+#: The scene of ``osn demo`` without ``--preset`` or ``--spec``.
+DEFAULT_PRESET = "gnome-house-demo"
+
+
+def _scene(args: argparse.Namespace) -> SceneSpec:
+    """The scene as given: ``--spec FILE``, else ``--preset NAME`` (default :data:`DEFAULT_PRESET`)."""
+    return load_spec(args.spec) if args.spec else load_preset(args.preset or DEFAULT_PRESET)
+
+
+def _scene_name(args: argparse.Namespace) -> str:
+    return str(args.spec) if args.spec else args.preset or DEFAULT_PRESET
+
+
+def _scene_options(args: argparse.Namespace) -> dict[str, str]:
+    """What the rendered stages record of the scene: the preset's name, or a digest of the spec's
+    content (an edited spec file is another scene; a moved one is not)."""
+    if args.spec:
+        return {"spec_sha256": hashlib.sha256(dump_spec(_scene(args)).encode()).hexdigest()}
+    return {"preset": args.preset or DEFAULT_PRESET}
+
+
+def _demo_spec(args: argparse.Namespace, resolution: int | None, configs: int | None) -> SceneSpec:
+    """The scene with the demo's overrides (None keeps the scene's value)."""
+    spec = _scene(args)
     if not (resolution or configs):
         return spec
     d = spec.to_dict()
@@ -139,7 +147,7 @@ def _demo_spec(args: argparse.Namespace, resolution: int | None, configs: int | 
         d["resolution"] = [resolution, resolution]
     if configs:
         d["configs"] = configs
-    return spec_from_dict(d, f"{args.preset} (demo overrides)")
+    return spec_from_dict(d, f"{_scene_name(args)} (demo overrides)")
 
 
 def _generate(spec, out: Path, args: argparse.Namespace, video_only: bool = False, ground_truth: bool = True) -> dict:
@@ -150,7 +158,7 @@ def _generate(spec, out: Path, args: argparse.Namespace, video_only: bool = Fals
 
 
 def stage_generate(args: argparse.Namespace, p: DemoPaths) -> dict:
-    """Render what training needs of the benchmark (the preset with the demo's resolution/configs
+    """Render what training needs of the benchmark (the scene with the demo's resolution/configs
     overrides): the training video, the exact region and the configurations."""
     return _generate(_demo_spec(args, args.resolution, args.configs), p.dataset, args, ground_truth=False)
 
@@ -176,7 +184,7 @@ def stage_ground_truth(args: argparse.Namespace, p: DemoPaths) -> BackgroundComm
     return job.start()
 
 
-#: ``--sfm-resolution auto`` with ``--inputs colmap``: the training video rendered again at this
+#: ``--sfm-resolution auto`` with ``--inputs-from colmap``: the training video rendered again at this
 #: size (rounded up to a multiple of the benchmark's) for SfM: large enough that SfM registers
 #: nearly every frame of every gnome-house object (smaller frames lose the ring-toy's first ones)
 #: and the valid set learned from it holds steady over SfM and training seeds (docs/preprocess.md;
@@ -189,7 +197,7 @@ def sfm_width(args: argparse.Namespace, dataset_width: int) -> int:
     with oracle inputs (SfM is then only a record) and :data:`SFM_SIZE` with SfM inputs."""
     r = args.sfm_resolution
     if r in (None, "auto"):
-        return -(-SFM_SIZE // dataset_width) * dataset_width if args.inputs == "colmap" else dataset_width
+        return -(-SFM_SIZE // dataset_width) * dataset_width if args.inputs_from == "colmap" else dataset_width
     if r < dataset_width or r % dataset_width:
         raise UserError(f"--sfm-resolution {r} must be a multiple of the benchmark's {dataset_width} px "
                         "(SfM's poses and depths are brought down to its frames)")
@@ -207,24 +215,13 @@ def stage_sfm_video(args: argparse.Namespace, p: DemoPaths, width: int) -> dict:
     return _generate(_demo_spec(args, width, None), p.sfm_video, args, video_only=True)
 
 
-#: The demo's SfM of the anchor runs on frames of at most this size (``--anchor-downscale auto``):
-#: the room fills the frame and registers as accurately at 512 px as above it (docs/preprocess.md).
-ANCHOR_SFM_SIZE = 512
-#: ``--crop-margin auto``: crops from this SfM resolution up, whole frames below (at 512 px crops
-#: worsen the ring-toy's worst frame; from 768 px they register frames that whole frames miss and
-#: shorten SfM at no cost in accuracy: docs/preprocess.md).
-CROP_FROM, CROP_MARGIN = 768, 32
-
-
 def demo_preprocess_config(args: argparse.Namespace, sfm_width: int) -> PreprocessConfig:
-    """The demo's SfM settings for frames ``sfm_width`` wide (``auto`` options resolved)."""
+    """The demo's SfM settings for frames ``sfm_width`` wide: ``osn preprocess``'s defaults for them
+    (:func:`osn.preprocess.sfm.pipeline_config`) with the demo's ``--anchor-downscale`` and ``--crop-margin``."""
     try:
-        anchor = max(1, sfm_width // ANCHOR_SFM_SIZE) if args.anchor_downscale == "auto" else int(args.anchor_downscale)
-        crop = (CROP_MARGIN if sfm_width >= CROP_FROM else -1) if args.crop_margin == "auto" else int(args.crop_margin)
-        return PreprocessConfig(on_failure="skip", anchor_downscale=anchor, crop_margin=crop)
-    except ValueError as e:  # not an integer, or out of range
-        raise UserError(f"--anchor-downscale {args.anchor_downscale} / --crop-margin {args.crop_margin}: "
-                        f"each is auto or an integer ({e})") from None
+        return pipeline_config(sfm_width, anchor_downscale=args.anchor_downscale, crop_margin=args.crop_margin)
+    except ValueError as e:  # out of range
+        raise UserError(f"--anchor-downscale {args.anchor_downscale} / --crop-margin {args.crop_margin}: {e}") from None
 
 
 def _sfm_lines(objects: list[dict]) -> list[str]:
@@ -255,7 +252,7 @@ def stage_preprocess(args: argparse.Namespace, p: DemoPaths) -> dict:
         if factor > 1:  # SfM saw the video larger; the fields learn the benchmark's own frames, as any method does
             inputs = with_video(inputs, video[0], video[2], p.dataset / "train")
     except InputsError as e:
-        if args.inputs == "colmap":
+        if args.inputs_from == "colmap":
             raise
         print(f"  SfM failed: {e}")
         return {"sfm_error": str(e)}
@@ -277,7 +274,7 @@ def stage_train(args: argparse.Namespace, p: DemoPaths, cfg: Any, beside: Backgr
     bit equal, a 2-thread one is not), so a switch at a moment of the wall clock would make each
     run's result depend on the machine's speed (docs/training.md)."""
     resume = (p.run / "checkpoint.pt").exists()
-    inputs = None if resume else load_inputs(p.sfm if args.inputs == "colmap" else p.oracle)
+    inputs = None if resume else load_inputs(p.sfm if args.inputs_from == "colmap" else p.oracle)
     threads = torch.get_num_threads()
     if beside is not None and beside.running():
         torch.set_num_threads(1)
@@ -323,10 +320,11 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     width = _demo_spec(args, args.resolution, args.configs).width
     sfm_px = sfm_width(args, width)  # a bad one stops here, before rendering
     demo_preprocess_config(args, sfm_px)  # so do bad SfM options
-    train_cfg = _scaled_config(args.iterations, args.train_config)  # also what the train stage depends on
+    train_cfg = training_config(args.config, args.field_iterations)  # also what the train stage depends on
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
-    bench = {"preset": args.preset, "resolution": args.resolution, "configs": args.configs}
+    scene = _scene_options(args)
+    bench = {**scene, "resolution": args.resolution, "configs": args.configs}
     jobs: dict[str, BackgroundCommand] = {}  # background stages' jobs once started (this invocation)
 
     def start_ground_truth() -> BackgroundCommand:
@@ -334,23 +332,23 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         return jobs["ground-truth"]
 
     stages = [
-        Stage("generate", f"benchgen: render the {args.preset} training video, its exact region and configurations",
+        Stage("generate", f"benchgen: render the {_scene_name(args)} training video, its exact region and configurations",
               partial(stage_generate, args, p), bench),
     ]
     sfm_res = sfm_px if sfm_px > width else None  # recorded only for a separate SfM video, so existing runs still match
     if sfm_res:
         stages.append(Stage("sfm-video", f"benchgen: render the training video at {sfm_px} px for SfM",
-                            partial(stage_sfm_video, args, p, sfm_px), {"preset": args.preset, "sfm_resolution": sfm_px}))
+                            partial(stage_sfm_video, args, p, sfm_px), {**scene, "sfm_resolution": sfm_px}))
     stages += [
         Stage("preprocess", "per-object SfM (pycolmap) and oracle inputs", partial(stage_preprocess, args, p),
-              {k: v for k, v in (("sfm_resolution", sfm_res), ("anchor_downscale", args.anchor_downscale),
-                                 ("crop_margin", args.crop_margin),
+              {k: v for k, v in (("sfm_resolution", sfm_res), ("anchor_downscale", str(args.anchor_downscale)),
+                                 ("crop_margin", str(args.crop_margin)),  # strings, as earlier work directories hold them
                                  # the fields learn the benchmark's frames, not SfM's averaged down
                                  ("training_frames", "benchmark" if sfm_res else None)) if v not in (None, "auto")}),
         Stage("ground-truth", "benchgen: render every configuration's test views and verify them", start_ground_truth,
               bench, background=True),
-        Stage("train", f"train per-object fields and the scale network on {args.inputs} inputs",
-              lambda: stage_train(args, p, train_cfg, jobs.get("ground-truth")), {"inputs": args.inputs, **train_options}),
+        Stage("train", f"train per-object fields and the scale network on {args.inputs_from} inputs",
+              lambda: stage_train(args, p, train_cfg, jobs.get("ground-truth")), {"inputs": args.inputs_from, **train_options}),
         Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
               {"n": args.n, "threshold": args.threshold, "seed": args.seed}),
         Stage("evaluate", "best-of-N evaluation against every ground truth", partial(stage_evaluate, args, p),
@@ -379,43 +377,30 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _auto_or_int(v: str) -> str | int:
-    if v == "auto":
-        return v
-    try:
-        return int(v)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"auto or an integer, not {v!r}") from None
-
-
 def add_demo_parser(sub: argparse._SubParsersAction) -> None:
-    p = subcommand(sub, "demo", _cmd_demo, "run the whole pipeline on the embedded Gnome-House scene (resumable)",
+    p = subcommand(sub, "demo", _cmd_demo, "run the whole pipeline on a preset (default: the embedded Gnome-House "
+                   "scene) or on your own scene spec (resumable)",
                    description="Generate the benchmark, preprocess (SfM + oracle), train, sample N configurations, "
                    "evaluate best-of-N against every ground truth, export for Blender and build the add-on. Run it "
                    "again to resume: finished stages are skipped.")
     p.add_argument("--work", default="runs/demo", help="working directory for every output")
-    p.add_argument("--preset", default="gnome-house-demo", help="benchgen preset (see `benchgen presets`)")
-    p.add_argument("--resolution", type=int, default=None, help="square image size (default: the preset's)")
-    p.add_argument("--configs", type=int, default=None, help="ground-truth configurations G (default: the preset's)")
-    p.add_argument("--iterations", type=int, default=None,
-                   help="field iterations in total (stage 1 + rounds); every phase is scaled (default: the CPU config's)")
-    p.add_argument("--train-config", help="YAML training config (default: the built-in CPU config)")
-    p.add_argument("--inputs", choices=["oracle", "colmap"], default="colmap",
+    scene = p.add_mutually_exclusive_group()
+    scene.add_argument("--preset", help=f"benchgen preset (see `benchgen presets`; default: {DEFAULT_PRESET})")
+    scene.add_argument("--spec", help="your own YAML scene spec, as `benchgen generate --spec` takes (docs/benchgen.md)")
+    p.add_argument("--resolution", type=int, default=None, help="square image size in pixels (default: the scene's)")
+    p.add_argument("--configs", type=int, default=None, help="number G of ground-truth configurations (default: the scene's)")
+    add_config_options(p)
+    p.add_argument("--inputs-from", choices=["oracle", "colmap"], default="colmap",
                    help="train on the pycolmap output (the method as published) or on oracle per-object inputs "
                    "(ground-truth poses and depths: an ablation, labelled so in the report)")
-    p.add_argument("--sfm-resolution", type=_auto_or_int, default="auto",
+    p.add_argument("--sfm-resolution", type=auto_or_int, default="auto",
                    help="run SfM on the training video rendered again at this square size (a multiple of the "
                    "benchmark's), its poses and depths brought down to the benchmark's frames, which the fields learn: "
                    "SfM registers only the room at "
-                   f"64 px; auto: {SFM_SIZE} px with --inputs colmap (SfM registers nearly every frame of every "
+                   f"64 px; auto: {SFM_SIZE} px with --inputs-from colmap (SfM registers nearly every frame of every "
                    "gnome-house object), "
-                   "the benchmark's own frames with --inputs oracle")
-    p.add_argument("--anchor-downscale", default="auto",
-                   help="SfM of the anchor (room) on the SfM video averaged down by this factor; auto: to at most "
-                   f"{ANCHOR_SFM_SIZE} px (2 at --sfm-resolution 1024: the room fills the frame and needs no more)")
-    p.add_argument("--crop-margin", default="auto",
-                   help="SIFT sees each object's frames cropped to its masks' box grown by this many pixels (-1: whole "
-                   f"frames); auto: {CROP_MARGIN} from {CROP_FROM} px up, whole frames below")
+                   "the benchmark's own frames with --inputs-from oracle")
+    add_sfm_size_options(p)
     p.add_argument("-n", type=int, default=1000, help="number of sampled configurations N")
     p.add_argument("--threshold", type=float, default=0.5, help="validity threshold of sampling")
     p.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth (0 = all)")
@@ -423,3 +408,6 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
                    help="rendering processes for benchgen, and objects (and each object's mapper restarts) "
                    "reconstructed at once by SfM (results do not depend on it)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampled configurations (the export carries those)")
+    deprecated_alias(p, "--iterations", "--field-iterations")
+    deprecated_alias(p, "--train-config", "--config")
+    deprecated_alias(p, "--inputs", "--inputs-from")

@@ -73,8 +73,8 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
                    "over ground truths) next to single-solution baselines, the valid-set accuracy against the exact "
                    "region, curves and timings. Writes report.md, metrics.json and PNG plots.")
     p.add_argument("run", help="run directory of `osn train`")
-    p.add_argument("--data", required=True, help="the benchgen dataset the run was trained on")
-    p.add_argument("--samples", help="samples file (default RUN/samples.npz from `osn sample`)")
+    p.add_argument("--data", required=True, metavar="DATASET", help="the benchgen dataset the run was trained on")
+    p.add_argument("--samples", metavar="FILE", help="samples file (default RUN/samples.npz from `osn sample`)")
     p.add_argument("--out", help="report directory (default RUN/report); a previous report there is replaced, "
                    "a directory holding other files is refused")
     p.add_argument("--max-views", type=int, default=30, help="evaluate at most this many test views, evenly spread (0 = all)")

@@ -14,7 +14,9 @@ from scenecore.cli import UserError, subcommand
 from scenecore.dataset import atomic_write_json, load_scene, read_training_video
 from osn.preprocess.inputs import IGNORE_ID, InputsError, SceneInputs, check_downscale, save_inputs, with_video
 from osn.preprocess.oracle import OracleConfig, oracle_inputs
-from osn.preprocess.sfm import PreprocessConfig, PreprocessReport
+from osn.preprocess.sfm import (
+    ANCHOR_SFM_SIZE, CROP_FROM, CROP_MARGIN, PIPELINE_DEFAULTS, PreprocessConfig, PreprocessReport, pipeline_config,
+)
 from osn.preprocess.video import (
     intrinsics_from_args, load_video, preprocess_dataset, preprocess_video, report_lines, training_inputs,
 )
@@ -28,17 +30,21 @@ def _cmd_oracle(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_preprocess(args: argparse.Namespace) -> int:
+#: ``osn preprocess`` options that are :class:`PreprocessConfig` fields of the same name.
+CONFIG_OPTIONS = ("matcher", "min_frames", "on_failure", "seed", "max_features", "upscale", "anchor_downscale",
+                  "crop_margin", "grey", "mapper_restarts", "anchor_mapper_restarts", "points_per_frame", "drop_occluding")
+
+
+def preprocess_config(args: argparse.Namespace, width: int) -> PreprocessConfig:
+    """What ``osn preprocess`` runs SfM with on frames ``width`` px wide: its options over the
+    pipeline's defaults (:func:`osn.preprocess.sfm.pipeline_config`, shared with ``osn demo``)."""
     try:
-        cfg = PreprocessConfig(
-            matcher=args.matcher, min_frames=args.min_frames, on_failure=args.on_failure, seed=args.seed,
-            max_features=args.max_features, upscale=args.upscale, anchor_downscale=args.anchor_downscale,
-            crop_margin=args.crop_margin, grey=args.grey,
-            mapper_restarts=args.mapper_restarts, anchor_mapper_restarts=args.anchor_mapper_restarts,
-            points_per_frame=args.points_per_frame, drop_occluding=args.drop_occluding,
-        )
+        return pipeline_config(width, **{k: getattr(args, k) for k in CONFIG_OPTIONS})
     except ValueError as e:
         raise UserError(f"osn preprocess: {e}") from None
+
+
+def _cmd_preprocess(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise UserError(f"osn preprocess: --workers must be >= 1, got {args.workers}")
     if args.work_dir and Path(args.work_dir).exists() and any(Path(args.work_dir).iterdir()):
@@ -50,13 +56,14 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         if args.masks:
             raise UserError(f"{src} is a benchgen dataset: its instance masks are used, drop --masks")
         scene = load_scene(src)
+        cfg = preprocess_config(args, scene.width)
         _check_downscale(src, scene.width, scene.height, args.downscale)
         _check_train_video(args.train_video, scene.width // args.downscale, scene.height // args.downscale, len(scene.train_frames))
         inputs, report = preprocess_dataset(src, cfg, progress, work_dir=args.work_dir, workers=args.workers)
     else:
         if args.train_video:
             raise UserError(f"{src}: --train-video needs a benchgen dataset as the source (its video rendered larger)")
-        inputs, report = _preprocess_frames(src, args, cfg, progress)
+        inputs, report, cfg = _preprocess_frames(src, args, progress)
     try:
         inputs = training_inputs(inputs, args.downscale, cfg)
     except InputsError as e:  # an object left without a pixel at the lower resolution
@@ -95,12 +102,13 @@ def _check_downscale(src: Path, width: int, height: int, factor: int) -> None:
 
 
 def _preprocess_frames(
-    src: Path, args: argparse.Namespace, cfg: PreprocessConfig, progress: Callable[[str], None]
-) -> tuple[SceneInputs, PreprocessReport]:
+    src: Path, args: argparse.Namespace, progress: Callable[[str], None]
+) -> tuple[SceneInputs, PreprocessReport, PreprocessConfig]:
     """``osn preprocess FRAMES --masks MASKS``: any video, with known intrinsics and instance masks."""
     if not args.masks:
         raise UserError(f"{src}: not a benchgen dataset (no scene.json), so --masks MASKS_DIR is required")
     images, masks, names = load_video(src, args.masks)
+    cfg = preprocess_config(args, images.shape[2])
     _check_downscale(src, images.shape[2], images.shape[1], args.downscale)  # before SfM, not after
     K = intrinsics_from_args(args.intrinsics, args.fov, images.shape[2], images.shape[1])
     ids = sorted(int(i) for i in np.unique(masks) if i not in (255, IGNORE_ID))
@@ -113,7 +121,30 @@ def _preprocess_frames(
         anchor, cfg, progress, args.work_dir, args.workers,
     )
     inputs.meta["frames"] = names
-    return inputs, report
+    return inputs, report, cfg
+
+
+def auto_or_int(v: str) -> str | int:
+    """An argparse type: ``auto`` or an integer."""
+    if v == "auto":
+        return v
+    try:
+        return int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"auto or an integer, not {v!r}") from None
+
+
+def add_sfm_size_options(p: argparse.ArgumentParser) -> None:
+    """``--anchor-downscale`` and ``--crop-margin``, as ``osn preprocess`` and ``osn demo`` both take
+    them (``auto``: :func:`osn.preprocess.sfm.pipeline_config` chooses by the SfM frames' width)."""
+    p.add_argument("--anchor-downscale", type=auto_or_int, default=PIPELINE_DEFAULTS["anchor_downscale"],
+                   help="SfM of the anchor (background), which fills the frame, on frames averaged down by this "
+                   "factor (it needs fewer pixels than small objects; at 1024 px upsampled it costs 4x those of 512); "
+                   f"auto: to at most {ANCHOR_SFM_SIZE} px")
+    p.add_argument("--crop-margin", type=auto_or_int, default=PIPELINE_DEFAULTS["crop_margin"],
+                   help="SIFT sees each object's frames cropped to the box of its masks over the video, grown by this "
+                   "many pixels (-1: whole frames; SIFT costs every pixel it is given); "
+                   f"auto: {CROP_MARGIN} from {CROP_FROM} px up, whole frames below")
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -139,25 +170,20 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output directory (inputs.json, inputs.npz, preprocess_report.json)")
     p.add_argument("--work-dir", help="keep each object's COLMAP working directory here (DIR/object_<id>: images/, "
                    "database.db, model/) to open it in COLMAP; default: a temporary directory, removed")
-    p.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], default="auto",
+    p.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], default=PreprocessConfig.matcher,
                    help="feature matching; auto = exhaustive up to 60 frames, sequential beyond")
-    p.add_argument("--min-frames", type=int, default=3, help="an object must register at least this many frames")
-    p.add_argument("--max-features", type=int, default=4096, help="SIFT features per frame and object")
-    p.add_argument("--upscale", type=int, default=2,
+    p.add_argument("--min-frames", type=int, default=PreprocessConfig.min_frames, help="an object must register at least this many frames")
+    p.add_argument("--max-features", type=int, default=PreprocessConfig.max_features, help="SIFT features per frame and object")
+    p.add_argument("--upscale", type=int, default=PreprocessConfig.upscale,
                    help="upsample frames by this integer factor before SIFT (objects under ~100 px need 2)")
-    p.add_argument("--anchor-downscale", type=int, default=1,
-                   help="SfM of the anchor (background), which fills the frame, on frames averaged down by this "
-                   "factor (it needs fewer pixels than small objects; at 1024 px upsampled it costs 4x those of 512)")
+    add_sfm_size_options(p)
     p.add_argument("--mapper-restarts", type=int, default=PreprocessConfig.mapper_restarts,
                    help="incremental mapping runs per object on the same matches, the best model kept (a small object "
                    "seen nearly in weak perspective has a depth-reversed twin that one run can settle in)")
     p.add_argument("--anchor-mapper-restarts", type=int, default=PreprocessConfig.anchor_mapper_restarts,
                    help="the same for the anchor (a single run is shorter, but the valid set learned from its model spreads "
                    "wider over seeds)")
-    p.add_argument("--crop-margin", type=int, default=PreprocessConfig.crop_margin,
-                   help="SIFT sees the frames cropped to the box of the object's masks over the video, grown by this "
-                   "many pixels (-1: whole frames); SIFT costs every pixel it is given")
-    p.add_argument("--grey", choices=["auto", "luminance", "principal"], default="auto",
+    p.add_argument("--grey", choices=["auto", "luminance", "principal"], default=PreprocessConfig.grey,
                    help="grey image SIFT sees: luminance, the object's principal colour axis, or auto "
                    "(principal only for objects whose colours differ mostly in hue, e.g. red on blue)")
     p.add_argument("--downscale", type=int, default=1,
@@ -168,17 +194,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    "frames and masks (the benchmark's video, the inputs' size) instead of the SfM frames averaged down, "
                    "which differ from them (area averages, where benchgen renders each pixel's centre ray); SfM's poses and "
                    "depths are kept")
-    p.add_argument("--drop-occluding", choices=["objects", "all", "none"], default="objects",
+    p.add_argument("--drop-occluding", choices=["objects", "all", "none"], default=PreprocessConfig.drop_occluding,
                    help="drop the sparse depths that lie in front of what the object's other frames saw (SfM's "
                    "phantoms, found without ground truth) before normalising: of every object but the anchor, of all, "
                    "or of none")
-    p.add_argument("--points-per-frame", type=int, default=0,
+    p.add_argument("--points-per-frame", type=int, default=PreprocessConfig.points_per_frame,
                    help="sparse depths kept per object and frame for training, at the written resolution, chosen at "
                    "random (0: as the oracle, a sixteenth of the frame's pixels, at least 256); near, far and each "
                    "object's box use all of SfM's depths")
-    p.add_argument("--on-failure", choices=["stop", "skip"], default="stop",
-                   help="an object that fails to register: stop with its message, or train without it")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--on-failure", choices=["stop", "skip"], default=PIPELINE_DEFAULTS["on_failure"],
+                   help="an object that fails to register: stop with its message, or train without it (reported; "
+                   "the anchor always stops), as `osn demo` does")
+    p.add_argument("--seed", type=int, default=PreprocessConfig.seed,
                    help="every pycolmap random seed, and the seed of the sparse-depth subsampling")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="objects reconstructed at once, and each object's mapper restarts run at once, each on "

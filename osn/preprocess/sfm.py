@@ -167,6 +167,38 @@ PREPROCESS_RULES = {
 }
 
 
+#: ``anchor_downscale="auto"`` in :func:`pipeline_config`: the anchor's SfM on frames of at most
+#: this size (the room fills the frame and registers as accurately at 512 px as above it:
+#: docs/preprocess.md).
+ANCHOR_SFM_SIZE = 512
+#: ``crop_margin="auto"``: crops of this margin from this SfM resolution up, whole frames below (at
+#: 512 px crops worsen the ring-toy's worst frame; from 768 px they register frames that whole
+#: frames miss and shorten SfM at no cost in accuracy: docs/preprocess.md).
+CROP_FROM, CROP_MARGIN = 768, 32
+#: What ``osn preprocess`` and ``osn demo`` run SfM with where it differs from
+#: :class:`PreprocessConfig`'s own defaults (the library's): sizes chosen for the frames' width,
+#: and an object that fails to register dropped and reported (the anchor still stops).
+PIPELINE_DEFAULTS: dict[str, int | str] = {"anchor_downscale": "auto", "crop_margin": "auto", "on_failure": "skip"}
+
+
+def pipeline_config(width: int, **options: int | str | float | bool) -> PreprocessConfig:
+    """The SfM settings of ``osn preprocess`` and ``osn demo`` for frames ``width`` px wide: the
+    one owner of their defaults (:data:`PIPELINE_DEFAULTS` over :class:`PreprocessConfig`'s), so
+    a hand-run ``osn preprocess`` reproduces the demo's SfM. ``auto`` sizes are resolved here.
+
+    Raises:
+        ValueError: an option out of range, or a size neither ``auto`` nor an integer.
+    """
+    opts = {**PIPELINE_DEFAULTS, **options}
+    if opts["anchor_downscale"] == "auto":
+        opts["anchor_downscale"] = max(1, width // ANCHOR_SFM_SIZE)
+    if opts["crop_margin"] == "auto":
+        opts["crop_margin"] = CROP_MARGIN if width >= CROP_FROM else -1
+    for k in ("anchor_downscale", "crop_margin"):
+        opts[k] = int(opts[k])
+    return PreprocessConfig(**opts)
+
+
 class ObjectRegistrationError(InputsError):
     """An object could not be reconstructed; the message names it, the counts and what helps."""
 

@@ -15,7 +15,7 @@ Modules, in reading order:
 * :mod:`~osn.train.checkpoint`: checkpoint writing, :class:`TrainingDiverged`, ``metrics.jsonl``.
 * :mod:`~osn.train.loop`: :func:`train`, the run directory and the iteration loop.
 
-``osn train DATASET`` (:mod:`osn.cli.train`) loads the exact region and oracle inputs from the
+``osn train --data DATASET`` (:mod:`osn.cli.train`) loads the exact region and oracle inputs from the
 dataset and calls :func:`train`.
 """
 

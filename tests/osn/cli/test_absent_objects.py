@@ -81,7 +81,7 @@ def trained(cb8, tmp_path_factory) -> Path:
     cfg.write_text(yaml.safe_dump(small_config(rounds=2).to_dict()))
     run = tmp / "run"
     assert osn_main(["oracle", str(cb8), "--out", str(tmp / "oracle")]) == 0
-    assert osn_main(["train", str(cb8), "--inputs", str(tmp / "oracle"), "--config", str(cfg), "--out", str(run)]) == 0
+    assert osn_main(["train", "--data", str(cb8), "--inputs", str(tmp / "oracle"), "--config", str(cfg), "--out", str(run)]) == 0
     assert osn_main(["sample", str(run), "-n", "200"]) == 0
     assert osn_main(["evaluate", str(run), "--data", str(cb8), "--max-views", "6", "--no-lpips"]) == 0
     assert osn_main(["export", str(run), "--out", str(tmp / "export"), "--data", str(cb8)]) == 0

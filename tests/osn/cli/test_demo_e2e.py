@@ -16,7 +16,7 @@ from scenecore import export_format as osn_core
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]
-DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs", "oracle", "--iterations", "150", "-n", "60",
+DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs-from", "oracle", "--field-iterations", "150", "-n", "60",
         "--max-views", "3", "--workers", "1"]
 
 
@@ -119,8 +119,8 @@ def test_report_command_reproduces_the_run(demo):
     words = shlex.split(m["command"])
     assert words[:2] == ["osn", "demo"]
     args = build_parser().parse_args(words[1:])
-    assert (args.preset, args.iterations, args.n, args.max_views, args.workers) == ("tiny", 150, 60, 3, 1)
-    assert args.work == str(demo) and args.inputs == "oracle"
+    assert (args.preset, args.field_iterations, args.n, args.max_views, args.workers) == ("tiny", 150, 60, 3, 1)
+    assert args.work == str(demo) and args.inputs_from == "oracle"
     assert f"`{m['command']}`" in (demo / "report" / "report.md").read_text()
 
 

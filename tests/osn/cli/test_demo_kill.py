@@ -22,7 +22,7 @@ import torch
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]
-DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs", "oracle", "--iterations", "150", "-n", "60",
+DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs-from", "oracle", "--field-iterations", "150", "-n", "60",
         "--max-views", "3", "--workers", "1"]
 # Wall times in metrics.json (osn/evaluate/bestofn.py, osn/evaluate/report.py); everything else must be equal.
 TIMING = ("timings.", "train_seconds", "curves.search_seconds_per_view_vs_n.")

@@ -25,7 +25,7 @@ def _args(work: Path, *extra: str) -> argparse.Namespace:
 
 
 def test_sfm_runs_on_the_larger_video_and_trains_on_the_benchmark_frames(tmp_path: Path) -> None:
-    args = _args(tmp_path, "--sfm-resolution", "128", "--inputs", "colmap")
+    args = _args(tmp_path, "--sfm-resolution", "128", "--inputs-from", "colmap")
     p = DemoPaths(tmp_path)
     stage_generate(args, p)
     stage_sfm_video(args, p, 128)
@@ -59,7 +59,7 @@ def test_sfm_resolution_auto_follows_the_inputs() -> None:
     ablation runs SfM on the benchmark's frames, as a record only."""
     from osn.cli.demo import SFM_SIZE, sfm_width
     assert sfm_width(_args(Path("w")), 64) == SFM_SIZE == 768  # the default: SfM inputs
-    assert sfm_width(_args(Path("w"), "--inputs", "oracle"), 64) == 64
+    assert sfm_width(_args(Path("w"), "--inputs-from", "oracle"), 64) == 64
     assert sfm_width(_args(Path("w")), 100) == 800  # rounded up to a multiple
     assert sfm_width(_args(Path("w"), "--sfm-resolution", "512"), 64) == 512
     with pytest.raises(SystemExit):

@@ -514,7 +514,7 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
                 "net": net.state_dict(), "iteration": 7}, run / "checkpoint.pt")
     (run / "run.json").write_text(json.dumps({"dataset": str(tmp_path / "data")}))  # as `osn train` writes; not read
     assert main(["export", str(run), "--out", str(tmp_path / "export"), "--data", str(tmp_path / "data"),
-                 "--samples", "6", "--seed", "1"]) == 0
+                 "-n", "6", "--seed", "1"]) == 0
 
     data = core.read_export(str(tmp_path / "export"))
     assert len(data.objects) == len(inputs.objects) and data.samples.shape == (6, len(inputs.objects))
@@ -549,9 +549,9 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
     assert core.read_export(str(tmp_path / "e2")).test_cameras is None
     assert main(["export", str(run), "--out", str(tmp_path / "e5"), "--data", str(tmp_path / "nowhere")]) == 2
     assert not (tmp_path / "e5").exists()
-    assert main(["export", str(run), "--out", str(tmp_path / "e3"), "--samples", "4"]) == 0
+    assert main(["export", str(run), "--out", str(tmp_path / "e3"), "-n", "4"]) == 0
     assert core.read_export(str(tmp_path / "e3")).samples.shape == (4, len(inputs.objects))
-    assert main(["export", str(run), "--out", str(tmp_path / "e4"), "--samples", "-1"]) == 2
+    assert main(["export", str(run), "--out", str(tmp_path / "e4"), "-n", "-1"]) == 2
     assert not (tmp_path / "e4").exists()
 
 

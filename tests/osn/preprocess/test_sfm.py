@@ -601,7 +601,7 @@ def test_users_video_from_frames_to_a_blender_export(sfm_scene, tmp_path):
     assert np.all(np.isfinite(data.samples)) and np.all(data.samples > 0)
     # Refused without a dataset or inputs, in one line.
     r = subprocess.run([sys.executable, "-m", "osn.cli", "train", "--out", str(tmp_path / "r2")], capture_output=True, text=True)
-    assert r.returncode == 2 and "give a benchgen DATASET or --inputs DIR" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 2 and "give a benchgen dataset (--data DATASET) or --inputs DIR" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run([sys.executable, "-m", "osn.cli", "preprocess", str(frames), "--masks", str(masks), "--fov", str(fov),
                         "--out", str(tmp_path / "i2"), "--work-dir", str(work)], capture_output=True, text=True)
     assert r.returncode == 2 and "--work-dir exists and is not empty" in r.stderr

@@ -137,9 +137,9 @@ def test_resume_skips_a_metrics_line_cut_by_a_kill(tmp_path: Path) -> None:
 
 
 def test_resume_refuses_a_new_config_or_inputs(tmp_path: Path) -> None:
-    r = subprocess.run([sys.executable, "-m", "osn.cli", "train", str(tmp_path), "--out", str(tmp_path / "run"),
+    r = subprocess.run([sys.executable, "-m", "osn.cli", "train", "--data", str(tmp_path), "--out", str(tmp_path / "run"),
                         "--resume", "--inputs", str(tmp_path)], capture_output=True, text=True)
-    assert r.returncode == 2 and "drop --config/--inputs" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 2 and "drop --inputs" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_resume_without_the_dataset_it_started_with_is_refused(tiny_dataset: Path, tmp_path: Path) -> None:
@@ -149,7 +149,7 @@ def test_resume_without_the_dataset_it_started_with_is_refused(tiny_dataset: Pat
     train(run, _cfg(stage1_iters=2, rounds=0, final_scale_iters=0), inputs=oracle_inputs(tiny_dataset),
           dataset=tiny_dataset, progress=False)
     r = subprocess.run([sys.executable, "-m", "osn.cli", "train", "--out", str(run), "--resume"], capture_output=True, text=True)
-    assert r.returncode == 2 and f"pass it again: osn train {tiny_dataset} --out {run} --resume" in r.stderr
+    assert r.returncode == 2 and f"pass it again: osn train --data {tiny_dataset} --out {run} --resume" in r.stderr
     assert "Traceback" not in r.stderr
 
 
