@@ -63,6 +63,8 @@ def provenance(doc: dict) -> str:
     commit = doc["commit"][:10] + (" with local changes" if doc.get("dirty") else "")
     wall = (doc.get("data") or {}).get("wall_seconds")
     took = f", {wall:.0f} s from start to table" if isinstance(wall, (int, float)) else ""
+    load = (doc.get("data") or {}).get("load_average_at_end")
+    took += f" (load average {load:.1f} at the end)" if isinstance(load, (int, float)) else ""
     return (f"*`{doc['command']}` on commit {commit}, {m['cpu']} ({m['cores']} cores), "
             f"{doc['time'][:10]}{took}.*")
 
