@@ -54,29 +54,40 @@ def os_error_line(e: OSError) -> str:
 
 
 @contextlib.contextmanager
-def sigterm_raises() -> Iterator[None]:
-    """Turn SIGTERM into :class:`Terminated` for the ``with`` block (main thread only; else a no-op).
+def sigterm_raises() -> Iterator[list[int]]:
+    """Turn SIGTERM into :class:`Terminated` and Ctrl-C into ``KeyboardInterrupt`` for the
+    ``with`` block (main thread only; else a no-op), recording each signal in the yielded list.
 
-    A process forked inside the block inherits the handler; there it restores the default and
-    ends itself, as SIGTERM intends, rather than raising in a worker that would carry on.
+    The record matters because Python ignores an exception raised while a finaliser or a logging
+    lock's release runs ("Exception ignored in ..."): a signal landing there would otherwise let
+    the command finish as if nothing happened. A process forked inside the block inherits the
+    handlers; there SIGTERM restores the default and ends the process, as SIGTERM intends, and
+    Ctrl-C raises ``KeyboardInterrupt`` as Python's own handler does.
     """
+    received: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield received
         return
     owner = os.getpid()
 
     def handler(signum: int, _frame: Any) -> None:
         if os.getpid() != owner:
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
-        raise Terminated(signum)
+        received.append(signum)
+        raise Terminated(signum) if signum == signal.SIGTERM else KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, handler)
+    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, handler)}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # a job started with Ctrl-C ignored keeps it so
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, handler)
     try:
-        yield
+        yield received
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 def run_cli(
@@ -90,20 +101,27 @@ def run_cli(
         parser.print_help()
         return 2
     try:
-        with sigterm_raises():
+        with sigterm_raises() as received:
             rc = args.func(args)
+        if received:  # the exception was swallowed where Python ignores it: still a stop
+            return _stopped(prog, args, received[0])
         return int(rc or 0)
     except KeyboardInterrupt as e:
-        # Subcommands whose rerun needs a flag to continue (``osn train --resume``) say so.
-        hint = getattr(args, "resume_hint", "run the same command again to resume")
-        stopped = "terminated" if isinstance(e, Terminated) else "interrupted"
-        print(f"{prog}: {stopped}; {hint}", file=sys.stderr)
-        return 128 + e.signum if isinstance(e, Terminated) else 130
+        return _stopped(prog, args, e.signum if isinstance(e, Terminated) else signal.SIGINT)
     except USER_ERRORS as e:
         msg = str(e) if not isinstance(e, KeyError) else f"missing key {e}"
         return _one_line(prog, args, msg, 2)
     except OSError as e:  # after USER_ERRORS: FileNotFoundError and FileExistsError are bad input
         return _one_line(prog, args, os_error_line(e), OS_ERROR_EXIT)
+
+
+def _stopped(prog: str, args: argparse.Namespace, signum: int) -> int:
+    """Say the command was stopped (and how to continue); return ``128 + signum``."""
+    # Subcommands whose rerun needs a flag to continue (``osn train --resume``) say so.
+    hint = getattr(args, "resume_hint", "run the same command again to resume")
+    stopped = "terminated" if signum == signal.SIGTERM else "interrupted"
+    print(f"{prog}: {stopped}; {hint}", file=sys.stderr)
+    return 128 + int(signum)
 
 
 def _one_line(prog: str, args: argparse.Namespace, msg: str, code: int) -> int:

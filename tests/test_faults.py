@@ -221,3 +221,30 @@ def test_out_dir_of_an_earlier_report_is_replaced(tiny_dataset: Path, pred: Path
     (out / MARKER).unlink()
     (out / "report.md").write_text("stale")
     assert benchgen(argv) == 0 and (out / MARKER).is_file() and (out / "report.md").read_text() != "stale"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_a_signal_swallowed_where_python_ignores_exceptions_still_stops_the_command(sig: int, capsys) -> None:
+    """Python ignores an exception raised in a finaliser (or a logging lock's release): a Ctrl-C or
+    SIGTERM landing there must still end the command with 128 + its number, not exit 0."""
+    import argparse
+
+    from scenecore.cli import run_cli
+
+    class Finalised:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), sig)  # the handler raises here, where Python only prints it
+
+    def command(_args: argparse.Namespace) -> int:
+        Finalised()
+        return 0
+
+    parser = argparse.ArgumentParser(prog="t")
+    parser.set_defaults(func=command)
+    previous = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert run_cli(parser, [], "t") == 128 + sig
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert ("interrupted" if sig == signal.SIGINT else "terminated") in capsys.readouterr().err
