@@ -11,6 +11,7 @@ from scenecore.cli import UserError, blas_on_one_thread, deprecated_alias, run_c
 blas_on_one_thread()  # before the import below brings numpy in
 
 from benchgen.score.command import add_score_command
+from benchgen.score.import_command import add_import_command
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -145,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--presets", default=None, help=f"comma-separated subset of the suite (default: all of {','.join(SUITE_PRESETS)})")
     _add_run_options(p)
     add_score_command(sub)
+    add_import_command(sub)
     return parser
 
 

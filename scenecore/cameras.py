@@ -12,7 +12,8 @@ Conventions (see docs/dataset-format.md):
   ``(u + 0.5, v + 0.5)``; a centred principal point is ``(W/2, H/2)``.
 * Depth is *planar* (the camera-frame z of the hit point), as Blender's depth pass gives it.
   Rays from :func:`pixel_rays` have unit camera-frame z, so ``origin + depth * direction`` is
-  the 3D point of a pixel with planar depth ``depth``.
+  the 3D point of a pixel with planar depth ``depth``. A distance along the ray (what NeRF
+  renderers such as nerfstudio's call depth) is planar depth times :func:`ray_lengths`.
 """
 
 from __future__ import annotations
@@ -89,6 +90,22 @@ def pixel_rays(
     directions = d_cam @ c2w[:3, :3].T
     origins = np.broadcast_to(c2w[:3, 3], directions.shape).copy()
     return origins, directions
+
+
+def ray_lengths(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(H, W)``: the distance from the camera centre to the point of planar depth 1 on each
+    pixel-centre ray (``|d|`` of :func:`pixel_rays`' directions, which are rotated but not scaled by
+    the pose). A depth measured along the ray (nerfstudio's NeRF depth) is planar depth times this.
+    """
+    _, d = pixel_rays(K, np.eye(4), width, height)
+    return np.linalg.norm(d, axis=1).reshape(height, width)
+
+
+def planar_from_ray_depth(ray_depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Planar depth (camera-frame z) of ``(H, W)`` depths measured along the pixel-centre rays
+    (float64; ``+inf`` stays ``+inf``)."""
+    ray_depth = np.asarray(ray_depth, dtype=np.float64)
+    return ray_depth / ray_lengths(K, ray_depth.shape[1], ray_depth.shape[0])
 
 
 def project(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

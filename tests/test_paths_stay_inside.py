@@ -188,8 +188,9 @@ def test_candidate_writer_refuses_paths_leaving_its_directory(trained: Path, tin
     # The view's own name writes where it always did.
     RenderedCandidates(run, good, sbar).write(cands, {"name": "test"})
     name = good.frames[0].name
+    train = [f"one/train/rgb/{f.name}.png" for f in good.scene.train_frames]  # its renders of the training video
     assert sorted(_tree(tmp_path)) == sorted(f"a/candidates/{p}" for p in
-                                             ("method.json", f"one/rgb/{name}.png", f"one/depth/{name}.exr", f"one/ids/{name}.png"))
+                                             ("method.json", f"one/rgb/{name}.png", f"one/depth/{name}.exr", f"one/ids/{name}.png", *train))
 
 
 # --------------------------------------------------------------------------------------------

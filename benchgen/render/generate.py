@@ -370,6 +370,27 @@ def _verify_all(
     return {"passed": all(c["passed"] for c in cfgs), "thresholds": thresholds(), "configurations": cfgs}
 
 
+def _store_covisibility(root: Path, workers: int, progress: bool, summary: Summary) -> None:
+    """Compute and store every configuration's co-visibility masks that are not stored yet
+    (``configs/GGG/covisibility.npz``): they depend on the dataset only, so ``benchgen score``
+    reads them instead of recomputing them. Local processes (numpy), whatever the executor."""
+    from benchgen.score.covisibility_store import merge_into_verification, stored_status, write_masks
+
+    t0 = time.perf_counter()
+    n = write_masks(root, workers, progress)
+    if n:
+        summary.notes.append(f"co-visibility masks stored for {n} configuration(s) in {time.perf_counter() - t0:.1f} s")
+    if summary.verification:  # the same record `benchgen verify` writes after recomputing them
+        summary.notes += merge_into_verification(summary.verification, stored_status(root))
+
+
+def _check_covisibility(root: Path, workers: int, progress: bool, summary: Summary) -> None:
+    """Recompute every stored co-visibility mask and compare (a difference fails its configuration)."""
+    from benchgen.score.covisibility_store import check_masks, merge_into_verification
+
+    summary.notes += merge_into_verification(summary.verification, check_masks(root, workers, progress))
+
+
 def generate(
     spec: SceneSpec, root: str | Path, workers: int = 1, executor: str = "local", address: str | None = None,
     progress: bool = True, video_only: bool = False, ground_truth: bool = True,
@@ -448,7 +469,10 @@ def _generate_locked(
                 summary.add(r)
                 bar.update(len(r.task.frames))
         summary.verification = _verify_all(ex, built, root, configs, summary, progress, use_cache=True)
+    _store_covisibility(root, workers, progress, summary)
     D.write_verification(root, summary.verification)
+    scene = D.with_depth_range(root, scene)  # near / far enclosing every ground-truth depth
+    D.write_scene(root, scene)
     try:
         D.write_transforms_json(root, scene)
     except D.DatasetError as e:  # e.g. one timestamp: the dataset is complete, only the interop files are impossible
@@ -478,6 +502,7 @@ def _verify_locked(root: Path, spec_path: Path, workers: int, executor: str, add
     summary.intervals = D.load_valid_region(root, scene.num_objects).intervals.tolist()
     with Executor(spec, root, workers, executor, address) as ex:
         summary.verification = _verify_all(ex, built, root, configs, summary, progress, use_cache=False)
+    _check_covisibility(root, workers, progress, summary)
     D.write_verification(root, summary.verification)
     summary.wall_seconds = time.perf_counter() - t0
     return summary

@@ -65,7 +65,11 @@ def view_psnr(rgbs: Sequence[np.ndarray], truth: Truth, energy: tuple[np.ndarray
     y2, count = truth_energy(truth) if energy is None else energy
     B, V = len(rgbs), truth.num_views
     sse = torch.empty(B, truth.num_configurations, V, dtype=torch.float64)
+    eight_bit = EXACT_FLOAT32 and all(c.dtype == np.uint8 for c in rgbs)
     for v in range(V):
+        if eight_bit:
+            sse[:, :, v] = _sse_8bit(np.stack([c[v].reshape(-1) for c in rgbs]), truth.masked_rgb[v], truth.mask[v], y2[v])
+            continue
         x = torch.from_numpy(np.stack([colour_units(c[v]).reshape(-1) for c in rgbs]))  # (B, 3P), 16-bit units
         m = torch.from_numpy(truth.mask[v]).double()  # (G, P)
         y = torch.from_numpy(truth.masked_rgb[v]).double()  # (G, 3P), 8-bit units, zero where masked out
@@ -74,6 +78,58 @@ def view_psnr(rgbs: Sequence[np.ndarray], truth: Truth, energy: tuple[np.ndarray
         sse[:, :, v] = x2 @ m.T - (2 * _FROM_8BIT) * (x @ y.T) + _FROM_8BIT**2 * torch.from_numpy(y2[v])
     mse = sse.clamp_min(0.0) / torch.from_numpy(UNIT**2 * 3 * count.T)  # 0 / 0 = NaN for an empty mask
     return M.psnr_from_mse(mse).numpy()
+
+
+#: Score 8-bit candidates with :func:`_sse_8bit` (exact float32 blocks, several times faster than
+#: float64 products); False: every candidate in float64 (``benchmarks/bench_score_protocol.py``
+#: times both). Both give the same errors, bit for bit.
+EXACT_FLOAT32 = True
+#: Products summed per float32 block: 8-bit x 8-bit products are at most 255^2, and 256 of them
+#: stay below 2^24, below which float32 holds every integer.
+_PRODUCT_BLOCK = 256
+#: Pixels summed per float32 block of the masked squares' halves (each at most 511 per pixel).
+_SQUARE_BLOCK = 1 << 15
+_SQUARE_SPLIT = 9  # a pixel's x^2 summed over channels (< 2^18) = 2^9 high + low, each < 2^9
+
+
+def _exact_float32_products(a: torch.Tensor, b: torch.Tensor, block: int) -> torch.Tensor:
+    """``a (B, L) @ b (G, L).T`` in float64, from float32 products summed over blocks of ``block``
+    columns in float32 and across blocks in float64. Exact when the inputs are non-negative
+    integers whose products summed over any ``block`` columns stay below 2^24: every partial sum a
+    float32 BLAS forms, in whatever order, is then an integer float32 holds exactly."""
+    B, L = a.shape
+    n = L // block * block
+    out = torch.zeros(B, b.shape[0], dtype=torch.float64)
+    if n:
+        nb = n // block
+        out += torch.bmm(a[:, :n].reshape(B, nb, block).transpose(0, 1),
+                         b[:, :n].reshape(-1, nb, block).permute(1, 2, 0)).sum(0, dtype=torch.float64)
+    if n < L:
+        out += (a[:, n:] @ b[:, n:].T).double()
+    return out
+
+
+def _sse_8bit(x8: np.ndarray, y8: np.ndarray, mask: np.ndarray, y2: np.ndarray) -> torch.Tensor:
+    """Masked squared errors ``(B, G)`` in 16-bit units of 8-bit candidates ``x8 (B, 3P)`` against
+    one view of every truth: ``y8 (G, 3P)`` uint8 zero where masked out, ``mask (G, P)``, ``y2 (G,)``
+    its :func:`truth_energy` (8-bit units).
+
+    An 8-bit value v is 257 v in 16-bit units, so the error is
+    ``257^2 (sum m x^2 - 2 sum x y + sum m y^2)`` in 8-bit integers: the cross term from float32
+    products in blocks of :data:`_PRODUCT_BLOCK`, the masked squares (a pixel's sum over channels,
+    below 2^18) split into two halves below 2^9, each summed in float32 over blocks of
+    :data:`_SQUARE_BLOCK` pixels. Every sum is an exact integer, so the result equals the float64
+    formula of :func:`view_psnr` exactly.
+    """
+    B = x8.shape[0]
+    x = torch.from_numpy(x8)
+    cross = _exact_float32_products(x.float(), torch.from_numpy(y8).float(), _PRODUCT_BLOCK)
+    xi = x.int().reshape(B, -1, 3)
+    sq = (xi * xi).sum(-1, dtype=torch.int32)  # (B, P)
+    halves = torch.cat([sq >> _SQUARE_SPLIT, sq & ((1 << _SQUARE_SPLIT) - 1)]).float()
+    h = _exact_float32_products(halves, torch.from_numpy(mask).float(), _SQUARE_BLOCK)
+    masked_sq = h[:B] * (1 << _SQUARE_SPLIT) + h[B:]
+    return _FROM_8BIT**2 * (masked_sq - 2 * cross + torch.from_numpy(y2))
 
 
 # Set before forking workers (:func:`parallel.ordered_map`), so that they inherit it unpickled.

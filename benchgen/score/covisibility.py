@@ -12,8 +12,15 @@ from typing import Sequence
 
 import numpy as np
 
+from scenecore import dataset as D
 from scenecore.cameras import invert_pose, pixel_rays, project
 from scenecore.dataset import NO_OBJECT, Scene
+
+#: Relative depth tolerance of the occlusion test (:func:`covisibility_mask`'s ``rtol``).
+DEPTH_RTOL = 0.03
+#: Version of the mask rule: stored masks (``configs/GGG/covisibility.npz``) computed under
+#: another version or tolerance are not used by ``benchgen score``. Bump it when the rule changes.
+RULE_VERSION = 1
 
 
 def covisibility_mask(
@@ -25,7 +32,7 @@ def covisibility_mask(
     train_c2w: np.ndarray,
     object_ids: np.ndarray | None = None,
     object_transforms: np.ndarray | None = None,
-    rtol: float = 0.03,
+    rtol: float = DEPTH_RTOL,
 ) -> np.ndarray:
     """Boolean ``(H, W)``: test pixels whose surface point some training frame saw.
 
@@ -93,7 +100,7 @@ def move_with_objects(points: np.ndarray, ids: np.ndarray, transforms: np.ndarra
 
 
 def seen_in_frame(
-    points: np.ndarray, K: np.ndarray, c2w: np.ndarray, depth: np.ndarray, rtol: float = 0.03
+    points: np.ndarray, K: np.ndarray, c2w: np.ndarray, depth: np.ndarray, rtol: float = DEPTH_RTOL
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where a frame sees world ``points (N, 3)``: their pixel coordinates ``uv (N, 2)`` (centres at
     .5) and ``seen (N,)``, True where a point projects in front of the camera inside the image and
@@ -148,3 +155,30 @@ def configuration_poses(scene: Scene, scales: Sequence[float]) -> np.ndarray:
     (``scene.configured_pose``), for :func:`covisibility_transforms` of many test times."""
     T, K = len(scene.timestamps), scene.num_objects
     return np.array([[scene.configured_pose(k, t, scales[k]) for k in range(K)] for t in range(T)]).reshape(T, K, 4, 4)
+
+
+def configuration_masks(
+    scene: Scene, scales: np.ndarray, frames: Sequence[D.Frame], depth: np.ndarray, ids: np.ndarray,
+    train_depth: np.ndarray, train_ids: np.ndarray,
+) -> np.ndarray:
+    """Co-visibility masks ``(V, H, W)`` bool of one configuration's views ``frames``.
+
+    ``depth``/``ids`` ``(V, H, W)`` are the configuration's ground truth on those views;
+    ``train_depth``/``train_ids`` ``(T, H, W)`` the stored (base) training video in time order.
+    Each test pixel's surface point moves with its object to every training time and is
+    co-visible when a training frame of this configuration saw it (:func:`covisibility_mask`).
+    """
+    K = scene.intrinsics.matrix()
+    t_c2w = np.stack([f.camera_to_world for f in sorted(scene.train_frames, key=lambda f: f.time_index)])
+    t_depths = [configured_depth(d, i, scales) for d, i in zip(train_depth, train_ids)]
+    transforms: dict[int, np.ndarray] = {}  # per test time: they depend on the time only
+    poses = configuration_poses(scene, scales)
+    out = np.zeros(depth.shape, bool)
+    for v, f in enumerate(frames):
+        if f.time_index not in transforms:
+            transforms[f.time_index] = covisibility_transforms(scene, scales, f.time_index, poses)
+        out[v] = covisibility_mask(
+            depth[v], K, f.camera_to_world, t_depths, K, t_c2w,
+            object_ids=np.where(ids[v] == NO_OBJECT, 0, ids[v]), object_transforms=transforms[f.time_index],
+        )
+    return out

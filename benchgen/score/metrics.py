@@ -29,6 +29,7 @@ Array = Union[np.ndarray, torch.Tensor]
 #: population covariances, K1 = 0.01, K2 = 0.03, data range 1 (skimage's settings in docs/metrics.md).
 SSIM_SIGMA = 1.5
 SSIM_RADIUS = int(3.5 * SSIM_SIGMA + 0.5)  # scipy.ndimage's radius rule -> 5
+SSIM_K1, SSIM_K2 = 0.01, 0.03
 
 
 def _tensor(x: Array, device: torch.device | None = None) -> torch.Tensor:
@@ -171,7 +172,7 @@ def ssim_map(pred: Array, gt: Array) -> torch.Tensor:
     stack = stack.reshape(*n, w, h)  # transposed; SSIM is per pixel, so transpose back at the end
     ux, uy, uxx, uyy, uxy = stack.split(C, dim=1)
     vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
-    c1, c2 = 0.01**2, 0.03**2
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
     s = (2 * ux * uy + c1) * (2 * vxy + c2) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
     return s.mean(1).transpose(-1, -2).reshape(*batch, h, w)
 

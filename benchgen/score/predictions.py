@@ -8,6 +8,8 @@ configuration directory of the dataset::
       CAND/rgb/NAME.png           every evaluated test frame NAME: 8- or 16-bit RGB or RGBA
       CAND/depth/NAME.exr         optional: planar depth (for SSIMAE), every candidate or none
       CAND/ids/NAME.png           optional: instance ids (for PQ / mIoU), every candidate or none
+      CAND/train/rgb/NAME.png     optional: its render of every training frame NAME (fidelity,
+                                  benchgen.score.fidelity), every candidate or none
 
 so a dataset's ``configs/GGG`` is itself a valid candidate. Candidates are taken in sorted name
 order; directories starting with ``.`` are skipped. The same checks apply to candidates given as
@@ -29,6 +31,8 @@ from benchgen.score.pngread import PngError, decode_ids, decode_rgb, max_png_byt
 
 METHOD_FILE = "method.json"
 SUFFIX = {"rgb": ".png", "depth": ".exr", "ids": ".png"}
+#: A candidate's renders of the training video: ``CAND/train/rgb/NAME.png`` per training frame.
+TRAIN = "train"
 #: Most bytes of ``method.json`` (a name and notes copied into the report).
 MAX_METHOD_BYTES = 1 << 20
 
@@ -61,6 +65,9 @@ class CandidateSource(Protocol):
     def load(self, index: int) -> Candidate:
         """Candidate ``index``, checked (raises :class:`PredictionError` naming what is wrong)."""
         ...
+
+    # Optional (``getattr(source, "has_train", False)``): ``has_train`` and ``load_train(index)``,
+    # the candidate's renders of the training frames ``(T, H, W, 3)`` in time order, checked.
 
 
 # --------------------------------------------------------------------------------------------
@@ -146,16 +153,36 @@ def _files(folder: Path) -> set[str] | None:
     return set(os.listdir(folder)) if folder.is_dir() else None
 
 
+#: What a render written by another tool is, by its file name's ending (lower case), and the
+#: ``benchgen import-renders`` call that turns it into this format.
+IMPORTABLE = {
+    "rgb": {".jpg": "JPEG, expected PNG", ".jpeg": "JPEG, expected PNG"},
+    "depth": {".npy.gz": "NumPy depth, expected a planar-depth EXR", ".npy": "NumPy depth, expected a planar-depth EXR"},
+}
+IMPORT_HINT = {"rgb": "use benchgen import-renders", "depth": "use benchgen import-renders --depth DIR --depth-kind ray|planar"}
+JPEG_MAGIC = b"\xff\xd8\xff"
+
+
+def _missing_view(folder: Path, kind: str, name: str, present: set[str]) -> str:
+    """Why ``folder/NAME`` is missing: a file another tool wrote where a PNG or EXR is expected, or none."""
+    lower = {p.lower(): p for p in present}
+    for ending, what in IMPORTABLE.get(kind, {}).items():
+        if (name + ending).lower() in lower:
+            return f"{folder / lower[(name + ending).lower()]}: {what} ({IMPORT_HINT[kind]})"
+    return f"{folder / (name + SUFFIX[kind])}: missing view"
+
+
 def _check_kind(cand: Path, kind: str, frames: Sequence[str], required: bool) -> bool:
     """Whether candidate ``cand`` has ``kind``; raises naming the first missing view."""
     present = _files(cand / kind)
     if present is None:
         if required:
-            raise PredictionError(f"{cand / kind}: missing directory (needs {kind}/NAME{SUFFIX[kind]} for every test view)")
+            hint = "; renders of ns-render or D-NeRF: use benchgen import-renders" if (cand / "test").is_dir() else ""
+            raise PredictionError(f"{cand / kind}: missing directory (needs {kind}/NAME{SUFFIX[kind]} for every test view{hint})")
         return False
     for name in frames:
         if name + SUFFIX[kind] not in present:
-            raise PredictionError(f"{cand / kind / (name + SUFFIX[kind])}: missing view")
+            raise PredictionError(_missing_view(cand / kind, kind, name, present))
     return True
 
 
@@ -181,6 +208,9 @@ class PredictionDir:
         first = self.root / self.names[0]
         self.has_depth = (first / "depth").is_dir()
         self.has_ids = (first / "ids").is_dir()
+        # The training frames in time order (scenecore.dataset.read_training_video's order).
+        self.train_frames = [f.name for f in sorted(scene.train_frames, key=lambda f: f.time_index)]
+        self.has_train = (first / TRAIN).is_dir()
         for name in self.names:
             self._check_layout(self.root / name, first)
 
@@ -191,6 +221,14 @@ class PredictionDir:
                 has, lacks = (cand, first) if not expected else (first, cand)
                 raise PredictionError(f"{lacks / kind}: missing, but {has / kind} exists "
                                       f"({kind} must be given for every candidate or for none)")
+        if (cand / TRAIN).is_dir() != self.has_train:
+            has, lacks = (cand, first) if not self.has_train else (first, cand)
+            raise PredictionError(f"{lacks / TRAIN}: missing, but {has / TRAIN} exists (renders of the training video "
+                                  "must be given for every candidate or for none)")
+        if self.has_train:
+            if not (cand / TRAIN / "rgb").is_dir():
+                raise PredictionError(f"{cand / TRAIN / 'rgb'}: missing directory (needs rgb/NAME.png for every training frame)")
+            _check_kind(cand / TRAIN, "rgb", self.train_frames, required=True)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -204,6 +242,11 @@ class PredictionDir:
         depth = np.stack([self._read(self.path(index, "depth", f), "depth") for f in self.frames]) if self.has_depth else None
         ids = np.stack([self._read(self.path(index, "ids", f), "ids") for f in self.frames]) if self.has_ids else None
         return Candidate(rgb, depth, ids)
+
+    def load_train(self, index: int) -> np.ndarray:
+        """Candidate ``index``'s renders of the training frames ``(T, H, W, 3)``, in time order, checked."""
+        folder = self.root / self.names[index] / TRAIN / "rgb"
+        return np.stack([self._read(folder / (f + SUFFIX["rgb"]), "rgb") for f in self.train_frames])
 
     def _read(self, path: Path, kind: str) -> np.ndarray:
         """One view's file, checked. Only a regular file of a size such an image can have is read,
@@ -219,6 +262,9 @@ class PredictionDir:
                 raise PredictionError(p)
             a = D.read_depth(path) if kind == "depth" else (decode_rgb if kind == "rgb" else decode_ids)(data)
         except PngError as e:
+            if data.startswith(JPEG_MAGIC):
+                hint = f" ({IMPORT_HINT[kind]})" if kind in IMPORT_HINT else ""
+                raise PredictionError(f"{path}: JPEG, expected PNG{hint}") from None
             raise PredictionError(f"{path}: {e}") from None
         except D.DatasetError as e:  # its message already names the file
             raise PredictionError(str(e)) from None
@@ -236,14 +282,18 @@ class MemorySource:
     called twice for a candidate that matches a ground truth (the pass, then the full metrics).
     Only a ``fork_safe`` loader (numpy only: no torch, no GPU) may run in worker processes;
     otherwise score with one worker, so that the loader runs in the calling process.
+    ``train_loader(n)``: candidate n's renders of the training frames ``(T, H, W, 3)`` in time
+    order (fidelity; optional).
     """
 
     def __init__(self, names: Sequence[str], loader: Callable[[int], Candidate], scene: D.Scene,
-                 num_views: int, has_depth: bool = False, has_ids: bool = False, fork_safe: bool = False) -> None:
+                 num_views: int, has_depth: bool = False, has_ids: bool = False, fork_safe: bool = False,
+                 train_loader: Callable[[int], np.ndarray] | None = None) -> None:
         if not names:
             raise PredictionError("no candidates to score")
         self.names, self.loader, self.scene, self.num_views = list(names), loader, scene, num_views
         self.has_depth, self.has_ids, self.fork_safe = has_depth, has_ids, fork_safe
+        self.train_loader, self.has_train = train_loader, train_loader is not None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -252,3 +302,15 @@ class MemorySource:
         c = self.loader(index)
         check_candidate(c, self.names[index], self.scene, self.num_views, self.has_depth, self.has_ids)
         return c
+
+    def load_train(self, index: int) -> np.ndarray:
+        if self.train_loader is None:
+            raise PredictionError(f"{self.names[index]}: no renders of the training video")
+        rgb = np.asarray(self.train_loader(index))
+        T = len(self.scene.train_frames)
+        if len(rgb) != T:
+            raise PredictionError(f"{self.names[index]}: train holds {len(rgb)} views, expected {T}")
+        for t in range(T):
+            if p := rgb_problem(f"{self.names[index]} train view {t}", rgb[t], self.scene):
+                raise PredictionError(p)
+        return rgb

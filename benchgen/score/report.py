@@ -18,6 +18,9 @@ import numpy as np
 
 from scenecore import dataset as D
 from scenecore.atomic import check_own_dir, own_dir, unmarked_report
+from benchgen.score import coverage as COV
+from benchgen.score import fidelity as F
+from benchgen.score import provenance as P
 from benchgen.score.scorer import METRICS, ScoreResult
 
 FORMAT = "benchgen-score"
@@ -26,7 +29,8 @@ VERSION = 1
 #: The file that marks a report directory written by ``benchgen score`` (replaced by the next one).
 MARKER = ".benchgen-score"
 _WHAT = "a benchgen score report"
-_FILES = ("report.md", "metrics.json", "psnr_matrix.npy", "best_of_n.png", "per_ground_truth.png")
+_FILES = ("report.md", "metrics.json", "psnr_matrix.npy", "best_of_n.png", "per_ground_truth.png", "coverage.png",
+          P.PREDICTIONS_LISTING, P.DATASET_LISTING)
 
 
 def _unmarked(out: Path) -> bool:
@@ -60,6 +64,7 @@ def metrics_json(res: ScoreResult, method: dict[str, Any], command: str, dataset
         "dataset": dataset, "predictions": predictions, **res.info,
         "summary": res.summary, "per_ground_truth": res.per_ground_truth, "curves": res.curves,
         "timings": res.timings, "candidates": res.names, "error_by_object": res.by_object,
+        "fidelity": res.fidelity, "coverage": res.coverage,
     })
 
 
@@ -130,7 +135,32 @@ def write_plots(res: ScoreResult, out: Path) -> list[str]:
     """``best_of_n.png`` and ``per_ground_truth.png`` in ``out``; returns the file names."""
     plot_best_of_n(res.curves, out / "best_of_n.png")
     plot_per_ground_truth(res.curves["sorted_best_psnr"], len(res.names), out / "per_ground_truth.png")
-    return ["best_of_n.png", "per_ground_truth.png"]
+    if not res.coverage:
+        return ["best_of_n.png", "per_ground_truth.png"]
+    COV.plot(res.coverage, out / "coverage.png", _save_fig)
+    return ["best_of_n.png", "per_ground_truth.png", "coverage.png"]
+
+
+#: The structure metrics: a sprayed configuration that wins on colour misplaces objects.
+STRUCTURE = ("ssimae", "pq", "miou")
+
+
+def lead_lines(res: ScoreResult, name: str) -> list[str]:
+    """The report's first section: what tells a method from a spray (the guarded best of N, the
+    structure metrics, coverage and precision), before the unguarded table."""
+    fid = res.fidelity or {"checked": False, "note": F.NOT_CHECKED}
+    structure = {k: v for k, v in res.summary.items() if k in STRUCTURE}
+    guarded = None
+    if fid.get("checked") and fid.get("summary"):
+        guarded = results_table(fid["summary"], f"{name}: best of {fid['num_faithful']} faithful")
+    lines = F.report_lines(fid, guarded, results_table(structure, f"{name}: best of {len(res.names)}") if structure else
+                           "(no depth or ids: SSIMAE, PQ and mIoU need them)")
+    if res.coverage:
+        levels = COV.report_levels(res.summary.get("psnr", {}).get("mean", float("nan")))
+        lines += ["Coverage: the share of ground truths some candidate matches with a mean PSNR at or above the level; "
+                  "precision: the share of candidates matching some ground truth at that level (`coverage.png`, "
+                  "`metrics.json` `coverage`; docs/metrics.md):", "", COV.table(res.coverage, levels), ""]
+    return lines + ["## Best of N over all candidates (unguarded)", ""]
 
 
 def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plots: list[str]) -> str:
@@ -139,7 +169,7 @@ def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plot
     name = str(method.get("name", "candidates"))
     label = f"{name}: best of {i['num_candidates']}"
     keys = [m for m in METRICS if m[0] in res.summary]
-    lines = ["# Benchmark score", "", f"Command: `{command}`", ""]
+    lines = ["# Benchmark score", "", f"Command: `{command}`", "", *P.banner_lines(i.get("provenance"))]
     if method.get("notes"):
         lines += [f"Method notes: {method['notes']}", ""]
     lines += [
@@ -148,6 +178,8 @@ def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plot
         "the training video (the rest are masked out). Each ground truth is matched to the candidate with the best "
         f"mean PSNR over its views ({i['distinct_matches']} distinct candidates matched); metrics are mean ± std "
         "over the ground truths.", "",
+        *([f"Note: {i['covisibility_note']}.", ""] if i.get("covisibility_note") else []),
+        *lead_lines(res, name),
         results_table(res.summary, label), "",
         *([BY_OBJECT_NOTE, "", by_object_table({label: res.by_object}), ""] if res.by_object else []),
         "| time | seconds |", "|---|---|",
@@ -158,8 +190,9 @@ def report_markdown(res: ScoreResult, method: dict[str, Any], command: str, plot
     ]
     for r in res.per_ground_truth:
         lines.append(f"| {r['configuration']:03d} | {r['match']} | " + " | ".join(f.format(r[k]) for k, _, f in keys) + " |")
-    lines += ["", "`metrics.json` holds every number here; `psnr_matrix.npy` the mean PSNR of every candidate (rows, "
-              "in the order of `candidates`) against every ground truth (columns)."]
+    lines += ["", "`metrics.json` holds every number here (and every view's value in `per_ground_truth[].per_view`); "
+              "`psnr_matrix.npy` the mean PSNR of every candidate (rows, in the order of `candidates`) against every "
+              "ground truth (columns).", "", *P.report_lines(i.get("provenance"))]
     return "\n".join(lines) + "\n"
 
 
@@ -174,6 +207,8 @@ def write_report(res: ScoreResult, out_dir: str | Path, method: dict[str, Any], 
         buf = io.BytesIO()
         np.save(buf, res.matrix)
         D.atomic_write_bytes(out / "psnr_matrix.npy", buf.getvalue())
+        for name, data in res.files.items():  # the per-file digests (provenance)
+            D.atomic_write_bytes(out / name, data)
         plots = write_plots(res, out)
         res.timings["report_s"] = time.perf_counter() - t0
         res.timings["total_s"] = sum(v for k, v in res.timings.items() if k != "total_s")

@@ -7,6 +7,9 @@
    / ids) of the matched candidates only, mean and std over the G ground truths.
 4. :func:`error_by_object`: where the matched candidates' squared error lies, by the ground
    truth's objects (any method: it reads the ground truth's ids, not the candidate's).
+5. :mod:`fidelity`: when the candidates hold renders of the training video, which of them explain
+   it, and best of N over those alone (the guarded figure); :mod:`coverage`: the share of ground
+   truths matched and of candidates matching, over PSNR levels.
 
 Candidates come from a :class:`predictions.CandidateSource`: a prediction directory
 (:class:`predictions.PredictionDir`) or arrays in memory (:class:`predictions.MemorySource`).
@@ -22,6 +25,8 @@ import numpy as np
 import torch
 
 from benchgen.score import bestofn
+from benchgen.score import coverage as COV
+from benchgen.score import fidelity as F
 from benchgen.score import metrics as M
 from benchgen.score.predictions import Candidate, CandidateSource
 from benchgen.score.truth import Truth
@@ -43,11 +48,37 @@ class ScoreResult:
     timings: dict[str, float]
     info: dict[str, Any] = field(default_factory=dict)
     by_object: dict[str, Any] = field(default_factory=dict)
+    #: Files written beside ``metrics.json`` (name -> bytes): the per-file digests of :mod:`provenance`.
+    files: dict[str, bytes] = field(default_factory=dict)
+    #: :func:`fidelity.check`'s record, with the guarded matches' ``summary`` and ``per_ground_truth``.
+    fidelity: dict[str, Any] = field(default_factory=dict)
+    #: :func:`coverage.curves` of the matrix (over the faithful candidates too when fidelity was checked).
+    coverage: dict[str, Any] = field(default_factory=dict)
 
 
 def _to_unit(rgb: np.ndarray) -> torch.Tensor:
     """Colour ``(..., 3)`` uint8 / uint16 / float as a float64 tensor in [0, 1]."""
     return torch.from_numpy(bestofn.colour_units(rgb) / bestofn.UNIT)
+
+
+def _per_view(x: Any) -> list[float]:
+    """A metric's values over views ``(V,)`` (tensor or array) as a list of floats."""
+    return np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, dtype=np.float64).reshape(-1).tolist()
+
+
+def match_view_psnr(rgb: np.ndarray, truth: Truth, g: int) -> list[float]:
+    """PSNR on each evaluated view of a candidate's colour ``rgb (V, H, W, 3)`` against ground
+    truth g: the values whose mean the candidate pass computed (for integer colours the same exact
+    squared errors, :mod:`bestofn`); NaN where a view's mask is empty."""
+    sse = np.empty(truth.num_views)
+    for v in range(truth.num_views):
+        m = truth.mask[v, g]
+        d = (bestofn.colour_units(rgb[v]).reshape(-1, 3) - bestofn.colour_units(truth.masked_rgb[v, g]).reshape(-1, 3))[m]
+        sse[v] = np.einsum("pc,pc->", d, d)
+    count = truth.mask[:, g].sum(-1, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mse = sse / (bestofn.UNIT**2 * 3 * count)
+    return M.psnr_from_mse(torch.from_numpy(mse)).numpy().tolist()
 
 
 def _nanmean(x: Any) -> float:
@@ -67,24 +98,28 @@ def match_metrics(
     candidate's and the ground truth's :func:`metrics.lpips_features`, when already computed.
     With ``num_objects``, also ``object_sse`` / ``object_pixels`` (lists of ``num_objects + 1``):
     :func:`metrics.squared_error_by_id` by the ground truth's ids. ``pred``: the candidate's colour
-    as float64 in [0, 1], when already converted.
+    as float64 in [0, 1], when already converted. ``per_view``: each metric's value on every view
+    (NaN where a view's mask is empty), whose means the other keys are.
     """
     pred = (_to_unit(cand.rgb) if pred is None else pred).float()
     ref, m = M.from_rgb8(rgb), torch.from_numpy(mask)
-    out: dict[str, Any] = {"ssim": _nanmean(M.ssim(pred, ref, m))}
+    per_view: dict[str, list[float]] = {"ssim": _per_view(M.ssim(pred, ref, m))}
+    out: dict[str, Any] = {"ssim": _nanmean(per_view["ssim"])}
     if num_objects:  # float32 as SSIM's inputs: no float64 copy of the ground truth (large test sets)
         sse, px = M.squared_error_by_id(pred, ref, ids, num_objects, m)
         out["object_sse"], out["object_pixels"] = sse.tolist(), px.astype(np.int64).tolist()
     if with_lpips:
         pf, gf = lpips_features if lpips_features is not None else (None, None)
-        out["lpips"] = _nanmean(M.lpips(pred, ref, m, pred_features=pf, gt_features=gf))
+        per_view["lpips"] = _per_view(M.lpips(pred, ref, m, pred_features=pf, gt_features=gf))
     if cand.depth is not None:
-        out["ssimae"] = _nanmean(M.ssimae(torch.from_numpy(np.asarray(cand.depth, np.float64)), torch.from_numpy(depth.astype(np.float64)), m))
+        per_view["ssimae"] = _per_view(M.ssimae(torch.from_numpy(np.asarray(cand.depth, np.float64)),
+                                                torch.from_numpy(depth.astype(np.float64)), m))
     if cand.ids is not None:
         seg = [M.segmentation_scores(cand.ids[v], ids[v], mask[v]) for v in range(len(mask))]
-        out["pq"] = 100.0 * _nanmean([s.pq for s in seg])
-        out["miou"] = 100.0 * _nanmean([s.miou for s in seg])
-    return out
+        per_view["pq"], per_view["miou"] = [100.0 * s.pq for s in seg], [100.0 * s.miou for s in seg]
+        out["pq"], out["miou"] = 100.0 * _nanmean([s.pq for s in seg]), 100.0 * _nanmean([s.miou for s in seg])
+    out.update({k: _nanmean(v) for k, v in per_view.items() if k not in out})
+    return {**out, "per_view": per_view}
 
 
 def error_by_object(rows: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
@@ -132,10 +167,9 @@ def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, worker
 
     Every candidate is checked while it is scored (a malformed one raises
     :class:`predictions.PredictionError` before anything is returned); the full metrics are
-    computed for the matched candidates only, each loaded once more.
+    computed for the matched candidates only, each loaded once more. With renders of the training
+    video, also the fidelity check and best of N over the faithful candidates (:func:`guarded`).
     """
-    from tqdm import tqdm
-
     if with_lpips:
         M.get_model()  # fail on missing LPIPS weights before the long pass, not after it
     timings = {}
@@ -145,30 +179,65 @@ def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, worker
     timings["candidate_pass_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    num_objects = truth.scene.num_objects
-    rows: list[dict[str, Any]] = []
-    with tqdm(total=truth.num_configurations, desc="matched metrics", unit="gt", disable=not progress, dynamic_ncols=True) as bar:
-        for n in np.unique(best.indices):  # each matched candidate is loaded once
-            cand = source.load(int(n))
-            pred = _to_unit(cand.rgb)
-            # LPIPS's network runs once per image set: the candidate's here, each ground truth's
-            # kept by `truth` across candidate sets (the distances are the same, feature for feature).
-            pred_features = M.lpips_features(pred.float()) if with_lpips else None
-            for g in np.flatnonzero(best.indices == n):
-                rgb, depth, ids = truth.views(int(g))
-                row = {"configuration": int(g), "match": source.names[n], "match_index": int(n), "psnr": float(best.scores[g])}
-                feats = (pred_features, truth.lpips_features(int(g))) if with_lpips else None
-                rows.append({**row, **match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips, feats,
-                                                    num_objects, pred)})
-                bar.update()
-    rows.sort(key=lambda r: r["configuration"])
+    rows = matched_rows(truth, source, best, with_lpips, progress)
     timings["metrics_s"] = time.perf_counter() - t0
     keys = metric_keys(source, with_lpips)
+    t0 = time.perf_counter()
+    fidelity = guarded(truth, source, matrix, rows, keys, with_lpips, workers, progress)
+    timings["fidelity_s"] = time.perf_counter() - t0
     info = {
         "num_candidates": len(source.names), "num_ground_truths": truth.num_configurations,
         "num_views": truth.num_views, "views": [f.name for f in truth.frames],
         "covisible_fraction": float(truth.mask.mean()), "metrics": keys, "workers": workers,
         "distinct_matches": int(len(np.unique(best.indices))),
+        "covisibility_masks": "computed" if truth.masks_note else "stored", "covisibility_note": truth.masks_note,
     }
     by_object = error_by_object(rows, [o.name for o in sorted(truth.scene.objects, key=lambda o: o.id)])
-    return ScoreResult(list(source.names), matrix, rows, summarise(rows, keys), bestofn.curves(matrix), timings, info, by_object)
+    ok = np.asarray(fidelity["faithful"], bool) if fidelity["checked"] else None
+    return ScoreResult(list(source.names), matrix, rows, summarise(rows, keys), bestofn.curves(matrix), timings, info, by_object,
+                       fidelity=fidelity, coverage=COV.curves(matrix, ok))
+
+
+def guarded(truth: Truth, source: CandidateSource, matrix: np.ndarray, rows: list[dict[str, Any]], keys: list[str],
+            with_lpips: bool, workers: int = 1, progress: bool = False) -> dict[str, Any]:
+    """:func:`fidelity.check` of ``source`` and, when some candidate is faithful, best of N over the
+    faithful ones: ``summary`` and ``per_ground_truth`` (the full metrics of those matches; a match
+    that is also the unguarded one reuses its row of ``rows``)."""
+    fid = F.check(truth.root, truth.scene, source, workers, progress)
+    if not fid["checked"] or not fid["num_faithful"]:
+        return {**fid, "summary": None, "per_ground_truth": []} if fid["checked"] else fid
+    best = F.guarded_match(matrix, np.asarray(fid["faithful"], bool))
+    same = {r["configuration"]: r for r in rows if best.indices[r["configuration"]] == r["match_index"]}
+    todo = [g for g in range(len(best.indices)) if g not in same]
+    new = matched_rows(truth, source, best, with_lpips, progress, todo) if todo else []
+    grows = sorted([*same.values(), *new], key=lambda r: r["configuration"])
+    return {**fid, "summary": summarise(grows, keys), "per_ground_truth": F.trim_rows(grows),
+            "distinct_matches": int(len(np.unique(best.indices)))}
+
+
+def matched_rows(truth: Truth, source: CandidateSource, best: M.BestOfN, with_lpips: bool, progress: bool = False,
+                 configurations: list[int] | None = None) -> list[dict[str, Any]]:
+    """Full metrics of each ground truth's match ``best.indices[g]`` (PSNR ``best.scores[g]``), for
+    ``configurations`` (default: all), sorted by configuration; each matched candidate loaded once."""
+    from tqdm import tqdm
+
+    gs = np.arange(len(best.indices)) if configurations is None else np.asarray(configurations, dtype=np.int64)
+    num_objects = truth.scene.num_objects
+    rows: list[dict[str, Any]] = []
+    with tqdm(total=len(gs), desc="matched metrics", unit="gt", disable=not progress, dynamic_ncols=True) as bar:
+        for n in np.unique(best.indices[gs]):  # each matched candidate is loaded once
+            cand = source.load(int(n))
+            pred = _to_unit(cand.rgb)
+            # LPIPS's network runs once per image set: the candidate's here, each ground truth's
+            # kept by `truth` across candidate sets (the distances are the same, feature for feature).
+            pred_features = M.lpips_features(pred.float()) if with_lpips else None
+            for g in gs[best.indices[gs] == n]:
+                rgb, depth, ids = truth.views(int(g))
+                row = {"configuration": int(g), "match": source.names[n], "match_index": int(n), "psnr": float(best.scores[g])}
+                feats = (pred_features, truth.lpips_features(int(g))) if with_lpips else None
+                full = match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips, feats, num_objects, pred)
+                full["per_view"] = {"psnr": match_view_psnr(cand.rgb, truth, int(g)), **full["per_view"]}
+                rows.append({**row, **full})
+                bar.update()
+    rows.sort(key=lambda r: r["configuration"])
+    return rows

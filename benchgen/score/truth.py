@@ -20,6 +20,7 @@ import torch
 
 from scenecore import dataset as D
 from benchgen.score import covisibility as C
+from benchgen.score import covisibility_store as store
 from benchgen.score import metrics as M
 from benchgen.score.parallel import ordered_map
 
@@ -32,31 +33,7 @@ def evaluated_views(scene: D.Scene, max_views: int = 0) -> list[D.Frame]:
     return test
 
 
-def configuration_masks(
-    scene: D.Scene, scales: np.ndarray, frames: Sequence[D.Frame], depth: np.ndarray, ids: np.ndarray,
-    train_depth: np.ndarray, train_ids: np.ndarray,
-) -> np.ndarray:
-    """Co-visibility masks ``(V, H, W)`` bool of one configuration's views ``frames``.
-
-    ``depth``/``ids`` ``(V, H, W)`` are the configuration's ground truth on those views;
-    ``train_depth``/``train_ids`` ``(T, H, W)`` the stored (base) training video in time order.
-    Each test pixel's surface point moves with its object to every training time and is
-    co-visible when a training frame of this configuration saw it (:func:`covisibility.covisibility_mask`).
-    """
-    K = scene.intrinsics.matrix()
-    t_c2w = np.stack([f.camera_to_world for f in sorted(scene.train_frames, key=lambda f: f.time_index)])
-    t_depths = [C.configured_depth(d, i, scales) for d, i in zip(train_depth, train_ids)]
-    transforms: dict[int, np.ndarray] = {}  # per test time: they depend on the time only
-    poses = C.configuration_poses(scene, scales)
-    out = np.zeros(depth.shape, bool)
-    for v, f in enumerate(frames):
-        if f.time_index not in transforms:
-            transforms[f.time_index] = C.covisibility_transforms(scene, scales, f.time_index, poses)
-        out[v] = C.covisibility_mask(
-            depth[v], K, f.camera_to_world, t_depths, K, t_c2w,
-            object_ids=np.where(ids[v] == D.NO_OBJECT, 0, ids[v]), object_transforms=transforms[f.time_index],
-        )
-    return out
+configuration_masks = C.configuration_masks  # its home is covisibility.py; kept here for callers
 
 
 #: Ground-truth views :meth:`Truth.views` keeps in memory once read, when every configuration's
@@ -85,6 +62,9 @@ class Truth:
     mask: np.ndarray
     _views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False, compare=False)
     _lpips: dict[int, list] = field(default_factory=dict, repr=False, compare=False)
+    #: One line when some co-visibility masks were computed here rather than read from the
+    #: dataset (``configs/GGG/covisibility.npz``, :mod:`covisibility_store`); "" when all were read.
+    masks_note: str = field(default="", compare=False)
 
     @property
     def num_configurations(self) -> int:
@@ -119,7 +99,8 @@ class Truth:
 
     def first_views(self, v: int) -> "Truth":
         """The same ground truths restricted to the first ``v`` evaluated views (no copy)."""
-        return Truth(self.root, self.scene, self.frames[:v], self.scales, self.masked_rgb[:v], self.mask[:v])
+        return Truth(self.root, self.scene, self.frames[:v], self.scales, self.masked_rgb[:v], self.mask[:v],
+                     masks_note=self.masks_note)
 
     def masks(self, g: int) -> np.ndarray:
         """Configuration g's masks ``(V, H, W)`` bool."""
@@ -130,20 +111,57 @@ class Truth:
 _JOB: dict[str, Any] = {}
 
 
-def _load_configuration(g: int) -> tuple[np.ndarray, np.ndarray]:
-    """Configuration g: masked colour ``(V, H*W*3)`` uint8 and masks ``(V, H*W)``."""
+def _training_depth_ids() -> tuple[np.ndarray, np.ndarray]:
+    """The training video's depth and ids, read once per process when a mask is computed."""
+    if "train" not in _JOB:
+        _JOB["train"] = D.read_training_video(_JOB["root"], _JOB["scene"])[1:]
+    return _JOB["train"]
+
+
+def _read_rgb(root: Path, scene: D.Scene, name: str, g: int) -> np.ndarray:
+    path = D.frame_paths(root, name, g).rgb
+    rgb = D.read_rgb(path)
+    if p := D.size_problem(path, rgb.shape[:2], scene):
+        raise D.DatasetError(p)
+    return rgb
+
+
+def _load_configuration(g: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """Configuration g: masked colour ``(V, H*W*3)`` uint8, masks ``(V, H*W)`` and where the masks
+    came from (``stored``, else why they were computed: ``absent``, another rule, ``not used``).
+    Stored masks spare reading the views' depth and ids."""
     root, scene, frames, scales = _JOB["root"], _JOB["scene"], _JOB["frames"], _JOB["scales"]
-    rgb, depth, ids = zip(*(D.read_frame(root, f.name, g, scene=scene) for f in frames))
-    mask = configuration_masks(scene, scales[g], frames, np.stack(depth), np.stack(ids), *_JOB["train"])
+    mask, source = store.stored(root, scene, g, frames) if _JOB["use_stored"] else (None, "not used")
+    if mask is not None:
+        rgb = [_read_rgb(root, scene, f.name, g) for f in frames]
+    else:
+        rgb, depth, ids = zip(*(D.read_frame(root, f.name, g, scene=scene) for f in frames))
+        mask = configuration_masks(scene, scales[g], frames, np.stack(depth), np.stack(ids), *_training_depth_ids())
     V = len(frames)
-    return (np.stack(rgb) * mask[..., None]).reshape(V, -1), mask.reshape(V, -1)
+    return (np.stack(rgb) * mask[..., None]).reshape(V, -1), mask.reshape(V, -1), source
 
 
-def load_truth(root: str | Path, max_views: int = 0, workers: int = 1, progress: bool = False) -> Truth:
-    """Read every configuration's evaluated views and compute their co-visibility masks.
+def masks_note(sources: list[str]) -> str:
+    """One line saying which configurations' masks were computed rather than read ("" when none)."""
+    computed = [s for s in sources if s != "stored"]
+    if not computed:
+        return ""
+    why = {"absent": "the dataset stores none (written before 'benchgen generate' stored them; rerunning it with the "
+                     "same options adds them)", "not used": "stored masks were not used"}
+    reasons = sorted({why.get(s, f"stored under another rule: {s}") for s in computed})
+    return (f"co-visibility masks computed on the fly for {len(computed)} of {len(sources)} configurations: "
+            + "; ".join(reasons))
 
-    ``workers`` > 1 reads and masks configurations in that many processes (same result; at most
-    a few configurations' arrays are in flight besides the result).
+
+def load_truth(root: str | Path, max_views: int = 0, workers: int = 1, progress: bool = False,
+               stored_masks: bool = True) -> Truth:
+    """Read every configuration's evaluated views and their co-visibility masks.
+
+    The masks are read from the dataset (``configs/GGG/covisibility.npz``, written by ``benchgen
+    generate``) where it stores them under the current rule, else computed (``stored_masks=False``:
+    always computed); :attr:`Truth.masks_note` says when any were computed. Both give the same
+    masks (``benchgen verify`` checks it). ``workers`` > 1 reads and masks configurations in that
+    many processes (same result; at most a few configurations' arrays are in flight besides the result).
     """
     from tqdm import tqdm
 
@@ -155,16 +173,17 @@ def load_truth(root: str | Path, max_views: int = 0, workers: int = 1, progress:
     configs = D.load_configurations(root, scene)
     if not configs:
         raise D.DatasetError(f"{root / 'scene.json'}: the dataset has no ground-truth configurations")
-    _, t_depth, t_ids = D.read_training_video(root, scene)
     scales = np.stack([c.scales for c in configs])
-    _JOB.update(root=root, scene=scene, frames=frames, scales=scales, train=(t_depth, t_ids))
+    _JOB.update(root=root, scene=scene, frames=frames, scales=scales, use_stored=stored_masks)
     G, V, P = len(configs), len(frames), scene.height * scene.width
     masked_rgb, mask = np.empty((V, G, P * 3), np.uint8), np.empty((V, G, P), bool)
+    sources: list[str] = []
     try:
         with tqdm(total=G, desc="ground truth", unit="config", disable=not progress, dynamic_ncols=True) as bar:
-            for g, (rgb_g, mask_g) in enumerate(ordered_map(_load_configuration, [(g,) for g in range(G)], workers)):
+            for g, (rgb_g, mask_g, source) in enumerate(ordered_map(_load_configuration, [(g,) for g in range(G)], workers)):
                 masked_rgb[:, g], mask[:, g] = rgb_g, mask_g
+                sources.append(source)
                 bar.update()
     finally:
         _JOB.clear()
-    return Truth(root, scene, frames, scales, masked_rgb, mask)
+    return Truth(root, scene, frames, scales, masked_rgb, mask, masks_note=masks_note(sources))

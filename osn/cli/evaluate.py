@@ -10,7 +10,9 @@ import time
 from pathlib import Path
 
 from scenecore.cli import UserError, subcommand
+from scenecore import dataset as D
 from scenecore.lock import output_lock
+from benchgen.score import provenance
 from osn.evaluate.bestofn import EvalConfig, evaluate
 from osn.evaluate.report import check_out_dir, summary_lines, write_report
 from osn.model.run import load_run
@@ -40,6 +42,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _evaluate_locked(args: argparse.Namespace, out: Path) -> int:
     check_out_dir(out)  # before the evaluation, not after it
+    # An unverified dataset is refused before the run is loaded (evaluate() records the verdict).
+    provenance.verification(args.data, D.load_scene(args.data), args.unverified)
     cfg = EvalConfig(max_views=args.max_views, levels=args.levels, topk=args.topk, lpips=not args.no_lpips, seed=args.seed,
                      true_scales=not args.no_true_scales)
     run = load_run(args.run)
@@ -48,7 +52,7 @@ def _evaluate_locked(args: argparse.Namespace, out: Path) -> int:
     if samples.sbar.shape[1] != run.inputs.num_objects:
         raise UserError(f"{samples_path}: samples have {samples.sbar.shape[1]} objects, the run has {run.inputs.num_objects}")
     t0 = time.perf_counter()
-    res = evaluate(run, args.data, samples, cfg, candidates_dir=args.candidates)
+    res = evaluate(run, args.data, samples, cfg, candidates_dir=args.candidates, unverified=args.unverified)
     res.timings["total_s"] = time.perf_counter() - t0
     report = write_report(res, out, Path(args.run), "osn " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
     print("\n".join(summary_lines(res.table, res.valid_set, res.scale_error)))
@@ -71,7 +75,10 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
                    description="Match each ground-truth configuration of DATASET to the best of the sampled "
                    "configurations (mean PSNR over its test views), report PSNR/SSIM/LPIPS/SSIMAE/PQ/mIoU (mean +- std "
                    "over ground truths) next to single-solution baselines, the valid-set accuracy against the exact "
-                   "region, curves and timings. Writes report.md, metrics.json and PNG plots.")
+                   "region, curves and timings. Writes report.md, metrics.json (with the SHA-256 of every dataset file read "
+                   "and of the --candidates written, listed in dataset.sha256 and predictions.sha256; 'benchgen score "
+                   "--check' re-verifies them) and PNG plots. A dataset whose verification.json is missing or failed is "
+                   "refused unless --unverified.")
     p.add_argument("run", help="run directory of `osn train`")
     p.add_argument("--data", required=True, metavar="DATASET", help="the benchgen dataset the run was trained on")
     p.add_argument("--samples", metavar="FILE", help="samples file (default RUN/samples.npz from `osn sample`)")
@@ -87,6 +94,10 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
                    help="skip the 'true scales' reference row: the run's fields rendered at every ground truth's exact "
                    "scales (what best of N approaches with these fields; costs G more rendered candidates)")
     p.add_argument("--seed", type=int, default=0, help="seed of Monte-Carlo valid-set points (more than 3 objects)")
+    p.add_argument("--unverified", action="store_true",
+                   help="score a dataset whose verification.json is missing or failed (refused otherwise); the report "
+                   "and metrics.json say so")
     p.add_argument("--candidates", metavar="DIR",
                    help="also write the rendered candidates as prediction directories for `benchgen score` "
-                   "(DIR/preselected, DIR/highest-score, DIR/centre-of-ranges, DIR/true-scales; docs/predictions.md)")
+                   "(DIR/preselected, DIR/highest-score, DIR/centre-of-ranges, DIR/true-scales; docs/predictions.md), "
+                   "each candidate with its render of the training video (CAND/train/rgb/, for the fidelity check)")

@@ -34,6 +34,7 @@ import torch
 
 from scenecore import dataset as D
 from scenecore.config import flag, integer, validate
+from benchgen.score import provenance
 from benchgen.score.scorer import ScoreResult, score
 from benchgen.score.truth import Truth, load_truth
 from osn.evaluate.exact import RenderedCandidates
@@ -99,6 +100,9 @@ class EvalResult:
     curves: dict[str, Any]
     timings: dict[str, float]
     extra: dict[str, Any] = field(default_factory=dict)
+    #: Files written beside ``metrics.json`` (name -> bytes): the per-file digests of
+    #: :mod:`benchgen.score.provenance` (``extra["provenance"]`` records their digests).
+    files: dict[str, bytes] = field(default_factory=dict, repr=False)
 
 
 def relative_scale_errors(actual: np.ndarray, true: np.ndarray, ids: list[int], anchor_id: int) -> list[float]:
@@ -142,17 +146,20 @@ def single_solutions(samples: Samples) -> dict[str, np.ndarray]:
 
 def evaluate(
     run: TrainedRun, dataset_root: str | Path, samples: Samples, cfg: EvalConfig, echo: Callable[[str], None] = print,
-    candidates_dir: str | Path | None = None,
+    candidates_dir: str | Path | None = None, unverified: bool = False,
 ) -> EvalResult:
     """Best-of-N evaluation of ``samples`` of ``run`` against every configuration of the dataset.
 
     With ``candidates_dir``, the rendered candidates are also written there as prediction
     directories (``preselected/``, ``highest-score/``, ``centre-of-ranges/``) that
     ``benchgen score`` scores the same way (8-bit colour, as any method's PNGs).
+    A dataset whose ``verification.json`` is missing or failed is refused (``DatasetError``)
+    unless ``unverified``; ``extra["provenance"]`` records it with the digests of the files read.
     """
     problem = ground_truth_problem(run.inputs)
     if problem:  # checked before any rendering: every metric below needs it
         raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
+    verified = provenance.verification(dataset_root, D.load_scene(dataset_root), unverified)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     # Configurations read and masked in forked processes, one per core torch would use (numpy only).
@@ -194,6 +201,11 @@ def evaluate(
         timings["true_scales_s"] = time.perf_counter() - t0
     if candidates_dir is not None:
         write_candidates(rendered, Path(candidates_dir), len(samples.sbar))
+    t0 = time.perf_counter()
+    sets = [CANDIDATE_DIRS[k] for k in rendered] if candidates_dir is not None else ()
+    prov = provenance.collect(dataset_root, truth.scene, [f.name for f in truth.frames], cfg.max_views,
+                              res.info["metrics"], verified, candidates_dir if sets else None, sets, region=True)
+    timings["digests_s"] = time.perf_counter() - t0
     per_gt = [{**{k: v for k, v in r.items() if k not in ("match", "match_index", "configuration")},
                "sample": int(n), "approx_psnr": float(approx_mean[n, g])} for g, (r, n) in enumerate(zip(res.per_ground_truth, match))]
 
@@ -218,8 +230,9 @@ def evaluate(
         **unposed_object_pixels(run, truth),
         **true_extra,
         "error_by_object": by_object,
+        "provenance": prov.record,
     }
-    return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra)
+    return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra, prov.files)
 
 
 def true_scales_candidates(run: TrainedRun, truth: Truth, with_lpips: bool) -> tuple[RenderedCandidates, ScoreResult]:

@@ -19,6 +19,7 @@ import numpy as np
 from scenecore.atomic import check_own_dir, own_dir, unmarked_report
 from scenecore.dataset import atomic_write_bytes, atomic_write_json, read_json
 from osn.train.environment import describe
+from benchgen.score import provenance as P
 from benchgen.score.report import BY_OBJECT_NOTE, by_object_table
 from benchgen.score.scorer import METRICS
 from osn.evaluate.bestofn import TRUE_SCALES, EvalResult
@@ -222,7 +223,8 @@ def limits_lines(limits: list[dict[str, Any]], rows: int = 8) -> list[str]:
 #: The file that marks a report directory written by ``osn evaluate`` (replaced by the next one).
 MARKER = ".osn-report"
 _WHAT = "an osn evaluation report"
-_FILES = ("report.md", "metrics.json", "training_curve.png", "best_of_n.png", "search_time.png", "validity_profile.png")
+_FILES = ("report.md", "metrics.json", "training_curve.png", "best_of_n.png", "search_time.png", "validity_profile.png",
+          P.PREDICTIONS_LISTING, P.DATASET_LISTING)
 
 
 def _unmarked(out: Path) -> bool:
@@ -251,7 +253,10 @@ def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str)
     train_log = read_metrics(run_dir / "metrics.jsonl")  # lines cut by a kill are skipped
     plots = write_plots(res, train_log, out)
     train_s = train_log[-1]["wall_time"] if train_log else float("nan")
-    atomic_write_json(out / "metrics.json", {**asdict(res), "train_seconds": train_s, "command": command})
+    for name, data in res.files.items():  # the per-file digests (benchgen.score.provenance)
+        atomic_write_bytes(out / name, data)
+    record = {k: v for k, v in asdict(res).items() if k != "files"}
+    atomic_write_json(out / "metrics.json", {**record, "train_seconds": train_s, "command": command})
     v, e = res.valid_set, res.extra
     se = res.scale_error
     lines = [
@@ -259,6 +264,7 @@ def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str)
         "",
         f"Command: `{command}`",
         "",
+        *P.banner_lines(e.get("provenance")),
         _inputs_line(run_dir),
         "",
         *_environment_lines(run_dir),
@@ -289,5 +295,6 @@ def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str)
     ]
     lines += limits_lines(v.get("limits", []))
     lines += [f"![{p}]({p})" for p in plots]
-    lines += ["", "`metrics.json` holds every number here, per ground truth, with the timings."]
+    lines += ["", "`metrics.json` holds every number here, per ground truth (each view's in `per_gt[].per_view`), "
+              "with the timings.", "", *P.report_lines(e.get("provenance"))]
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode())

@@ -8,6 +8,8 @@ benchgen writes through it, osn reads through it, and ``validate`` checks a dire
 * ``images``: RGBA / instance-id PNGs and planar-depth EXRs;
 * ``manifest``: ``scene.json``, configurations, valid region, verification, whole frames;
 * ``transforms``: D-NeRF / nerfstudio ``transforms_{train,val,test}.json``;
+* ``depth_range``: the scene's ``near`` / ``far`` (every ground-truth depth, with a margin);
+* ``covisibility``: each configuration's stored co-visibility masks (``covisibility.npz``);
 * ``validation``: ``validate``, the format checker;
 * atomic writes come from :mod:`scenecore.atomic` (re-exported here).
 
@@ -18,6 +20,7 @@ Layout::
       train/{rgb,depth,ids}/NAME.*     the monocular training video (shared by every configuration)
       configs/GGG/config.json          scale vector of ground-truth configuration GGG
       configs/GGG/{rgb,depth,ids}/NAME.*   its test views
+      configs/GGG/covisibility.npz     its test views' co-visibility masks, bit-packed (optional)
       valid_region.json                exact valid-scale region
       verification.json                invariance statistics (optional until generation ends)
       transforms_{train,val,test}.json D-NeRF / nerfstudio views (written at the end of generation)
@@ -41,6 +44,10 @@ from .model import (
 )
 from .transforms import MAX_VAL_VIEWS, TRANSFORMS_SPLITS, camera_angle_x, transforms_splits, val_frames, write_transforms_json
 from .validation import iter_frame_files, validate
+from .covisibility import (
+    COVISIBILITY_FILE, CovisibilityMasks, covisibility_frames, covisibility_path, read_covisibility, write_covisibility,
+)
+from .depth_range import depth_range, with_depth_range
 
 __all__ = [
     "atomic_path", "atomic_write_bytes", "atomic_write_json", "publish_mode", "read_json",
@@ -53,4 +60,6 @@ __all__ = [
     "Frame", "FramePaths", "Intrinsics", "Scene", "SceneObject", "config_dirname", "frame_paths",
     "MAX_VAL_VIEWS", "TRANSFORMS_SPLITS", "camera_angle_x", "transforms_splits", "val_frames", "write_transforms_json",
     "iter_frame_files", "validate",
+    "COVISIBILITY_FILE", "CovisibilityMasks", "covisibility_frames", "covisibility_path", "read_covisibility",
+    "write_covisibility", "depth_range", "with_depth_range",
 ]

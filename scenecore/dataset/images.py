@@ -19,7 +19,7 @@ from .model import DatasetError
 
 __all__ = [
     "encode_png", "write_rgb", "write_ids", "write_depth", "read_image", "read_rgb", "rgb_from_image", "read_ids",
-    "read_depth", "MAX_IMAGE_PIXELS", "pixels_problem", "read_regular", "exr_size",
+    "read_depth", "MAX_IMAGE_PIXELS", "pixels_problem", "read_regular", "open_regular", "exr_size",
 ]
 
 #: Alpha of every stored RGB pixel: the anchor (room) covers the whole image, so nothing is
@@ -130,6 +130,13 @@ def _open_regular(path: Path) -> tuple[BinaryIO, int]:
         os.close(fd)
         raise
     return os.fdopen(fd, "rb"), size
+
+
+def open_regular(path: str | Path) -> tuple[BinaryIO, int]:
+    """``path`` opened for reading and its size when opened, for readers that stream it
+    (``benchgen.score.provenance`` hashes in chunks); ``DatasetError`` naming it when it is
+    missing or not a regular file, without blocking on a FIFO."""
+    return _open_regular(Path(path))
 
 
 def read_regular(path: str | Path, max_bytes: int) -> bytes:

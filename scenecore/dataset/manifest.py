@@ -59,6 +59,7 @@ def scene_to_json(scene: Scene) -> dict[str, Any]:
             "cx": scene.intrinsics.cx,
             "cy": scene.intrinsics.cy,
         },
+        **({} if scene.near is None else {"near": scene.near, "far": scene.far}),
         "timestamps": [float(t) for t in scene.timestamps],
         "num_views": scene.num_views,
         "num_configurations": scene.num_configurations,
@@ -198,7 +199,18 @@ def _scene_from_json(d: dict[str, Any], path: Path) -> Scene:
         num_configurations=int(d.get("num_configurations", 0)),
         units=str(d.get("units", "meters")),
         generator=dict(d.get("generator", {})),
+        **_parse_near_far(d, path),
     )
+
+
+def _parse_near_far(d: dict[str, Any], path: Path) -> dict[str, float]:
+    """``near`` and ``far`` (both or neither; absent in datasets written before they existed)."""
+    if "near" not in d and "far" not in d:
+        return {}
+    near, far = float(_req(d, "near", "manifest", path)), float(_req(d, "far", "manifest", path))
+    if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+        raise DatasetError(f"{path}: near {near} and far {far} must be finite with 0 < near < far")
+    return {"near": near, "far": far}
 
 
 def write_scene(root: str | Path, scene: Scene) -> None:

@@ -83,6 +83,10 @@ class Scene:
     num_configurations: int
     units: str = "meters"
     generator: dict[str, Any] = field(default_factory=dict)
+    #: Depth range of every ground-truth frame with a margin (``depth_range``), for methods that
+    #: sample rays between near and far planes; None in datasets written before it existed.
+    near: float | None = None
+    far: float | None = None
 
     @property
     def num_objects(self) -> int:

@@ -4,7 +4,8 @@ The files follow the contract both loaders read (see docs/dataset-format.md, "D-
 nerfstudio"): all three splits exist; ``file_path`` is relative, starts with ``./`` and has no
 extension (the loaders append ``.png``); ``time`` is in [0, 1] and every split starts at time 0,
 the training video ending at exactly 1; ``transform_matrix`` is an OpenGL camera-to-world pose;
-one ``camera_angle_x`` (radians) stands for square pixels and a centred principal point.
+one ``camera_angle_x`` (radians) stands for square pixels and a centred principal point;
+``near`` / ``far`` repeat scene.json's depth range when it has one.
 """
 
 from __future__ import annotations
@@ -114,11 +115,14 @@ def write_transforms_json(root: str | Path, scene: Scene, test_config: int = 0) 
     """
     root = Path(root)
     fov_x = camera_angle_x(scene, root)
+    # Neither D-NeRF nor nerfstudio reads near / far from here: they are for the user to pass on
+    # (docs/predictions.md); datasets written before they existed have none.
+    near_far = {} if scene.near is None else {"near": scene.near, "far": scene.far}
     docs = {}
     for split, (frames, config) in transforms_splits(scene, test_config).items():
         entries = [_frame_entry(scene, f, config) for f in frames]
         path = root / f"transforms_{split}.json"
         _check_times(path, split, [e["time"] for e in entries], len(scene.timestamps))
-        docs[path] = {"camera_angle_x": fov_x, "frames": entries}
+        docs[path] = {"camera_angle_x": fov_x, **near_far, "frames": entries}
     for path, doc in docs.items():
         atomic_write_json(path, doc)

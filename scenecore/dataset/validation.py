@@ -7,6 +7,7 @@ from typing import Iterable
 
 import numpy as np
 
+from .covisibility import covisibility_path, read_covisibility
 from .images import read_depth, read_ids, read_image, rgb_from_image
 from .manifest import ids_problem, load_configuration, load_scene, load_valid_region, size_problem
 from .model import NO_OBJECT, DatasetError, Frame, FramePaths, Scene, config_dirname, frame_paths
@@ -97,6 +98,27 @@ def validate(root: str | Path, check_images: bool = True) -> list[str]:
         if check_images:
             for f in scene.test_frames:
                 _check_frame_files(frame_paths(root, f.name, g), scene, problems)
+    if check_images:
+        problems += _covisibility_problems(root, scene)
+    return problems
+
+
+def _covisibility_problems(root: Path, scene: Scene) -> list[str]:
+    """Stored co-visibility masks (optional: datasets written before them have none) are either
+    absent for every configuration or readable and of the manifest's sizes for all of them.
+    Their content is checked by ``benchgen verify``, which recomputes them."""
+    G = scene.num_configurations
+    present = [g for g in range(G) if covisibility_path(root, g).exists() or covisibility_path(root, g).is_symlink()]
+    if not present:
+        return []
+    problems = [f"{covisibility_path(root, g)}: missing, while {len(present)} of {G} configurations store "
+                "co-visibility masks (rerun 'benchgen generate' with the same options to add it)"
+                for g in range(G) if g not in set(present)]
+    for g in present:
+        try:
+            read_covisibility(root, scene, g)
+        except DatasetError as e:
+            problems.append(str(e))
     return problems
 
 

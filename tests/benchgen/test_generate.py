@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import filecmp
+import json
 import os
 import shutil
 import signal
@@ -307,7 +308,10 @@ def test_without_ground_truth_stops_before_the_test_views_and_the_rest_follows(t
     assert {f.parts[0] for f in files} == {"train", "configs", "scene.json", "spec.yaml", "valid_region.json"}
     assert [f for f in files if f.parts[0] == "configs"] == [Path("configs") / f"{g:03d}" / "config.json" for g in range(3)]
     _, mismatch, errors = filecmp.cmpfiles(tiny, out, [str(f) for f in files], shallow=False)
-    assert not mismatch and not errors
+    # scene.json gains the depth range (near / far) once every ground-truth depth exists.
+    assert mismatch == ["scene.json"] and not errors
+    full = json.loads((tiny / "scene.json").read_text())
+    assert {k: v for k, v in full.items() if k not in ("near", "far")} == json.loads((out / "scene.json").read_text())
     summary = generate(load_preset("tiny"), out, progress=False)
     assert summary.passed and summary.verification["passed"]
     _assert_same_tree(tiny, out)

@@ -1,0 +1,182 @@
+"""``benchgen score`` at a protocol's full size: today's path against stored masks, in one process.
+
+On one dataset and one prediction directory, one after the other in this process:
+
+* ``on the fly``: the ground truth's co-visibility masks computed from its depth and ids (what
+  every dataset written before ``configs/GGG/covisibility.npz`` existed gets), candidates scored in
+  float64 (``bestofn.EXACT_FLOAT32 = False``);
+* ``stored``: the masks read from the dataset, 8-bit candidates scored in exact float32 blocks;
+* ``benchgen score``: the command itself on the same inputs (stored masks; it also hashes every
+  file it reads for the report's provenance and checks the dataset's verification).
+
+The first two must give the same PSNR matrix and the same matches, bit for bit (checked). Each
+row reports wall seconds by phase and the CPU seconds of this process and its workers. The
+candidates are N symlinks to the dataset's own ``configs/GGG`` (candidate i is configuration
+i mod G: a valid candidate with colour, depth and ids, every file read and checked like any
+method's). Every dataset file is read once before timing, so no path pays for a cold page cache.
+
+    python benchmarks/bench_score_protocol.py DATASET --work DIR [-n 1000] [--views 0] [--workers 2] [--no-lpips]
+
+Writes ``benchmarks/results/score_speed.json`` (``--results``), the table docs/predictions.md shows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchutil import print_command
+from results_json import table, write_results
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def build_predictions(dataset: Path, pred: Path, n: int, num_configs: int) -> None:
+    """``pred/NNNN`` -> ``dataset/configs/GGG`` with g = i mod G (kept when already there)."""
+    pred.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        link = pred / f"{i:04d}"
+        target = (dataset / "configs" / f"{i % num_configs:03d}").resolve()
+        if link.is_symlink() and Path(os.readlink(link)) == target:
+            continue
+        if link.is_symlink():
+            link.unlink()
+        link.symlink_to(target)
+
+
+def warm(dataset: Path) -> int:
+    """Read every file of the dataset once (page cache); returns the bytes read."""
+    total = 0
+    for p in sorted(dataset.rglob("*")):
+        if p.is_file():
+            total += len(p.read_bytes())
+    return total
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of this process and of its finished children (the scorer's workers)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool, stored: bool) -> dict:
+    """Load the ground truth and score, as ``benchgen score`` does, with or without stored masks."""
+    from scenecore import dataset as D
+    from benchgen.score import bestofn
+    from benchgen.score.predictions import PredictionDir
+    from benchgen.score.report import write_report
+    from benchgen.score.scorer import score
+    from benchgen.score.truth import evaluated_views, load_truth
+
+    bestofn.EXACT_FLOAT32 = stored
+    c0, t0 = cpu_seconds(), time.perf_counter()
+    scene = D.load_scene(dataset)
+    source = PredictionDir(pred, scene, [f.name for f in evaluated_views(scene, views)])
+    truth = load_truth(dataset, views, workers, stored_masks=stored)
+    t_truth = time.perf_counter() - t0
+    res = score(truth, source, with_lpips=lpips, workers=workers)
+    res.timings = {"ground_truth_s": t_truth, **res.timings}
+    write_report(res, out, source.method, "bench_score_protocol", str(dataset), str(pred))
+    wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
+    bestofn.EXACT_FLOAT32 = True
+    return {"wall_s": wall, "cpu_s": cpu, "timings": res.timings, "matrix": res.matrix, "mask": truth.mask,
+            "rows": res.per_ground_truth, "note": truth.masks_note}
+
+
+def run_cli(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool) -> dict:
+    from benchgen.cli import main as benchgen
+
+    cmd = ["score", str(pred), "--data", str(dataset), "--out", str(out), "--workers", str(workers), "--quiet"]
+    cmd += ["--max-views", str(views)] * bool(views) + ["--no-lpips"] * (not lpips)
+    c0, t0 = cpu_seconds(), time.perf_counter()
+    rc = benchgen(cmd)
+    wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
+    if rc:
+        sys.exit(f"benchgen score exited with {rc}")
+    m = json.loads((out / "metrics.json").read_text())
+    return {"wall_s": wall, "cpu_s": cpu, "timings": m["timings"], "matrix": np.load(out / "psnr_matrix.npy"),
+            "rows": m["per_ground_truth"], "note": m.get("covisibility_note", "")}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dataset")
+    p.add_argument("--work", required=True, help="directory for the prediction links and the reports (reused)")
+    p.add_argument("-n", type=int, default=1000, help="candidates N")
+    p.add_argument("--views", type=int, default=0, help="evaluated test views (0 = all)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--no-lpips", action="store_true", help="skip LPIPS in the matched metrics")
+    p.add_argument("--results", default=str(REPO / "benchmarks" / "results" / "score_speed.json"))
+    args = p.parse_args()
+    print_command()
+    from scenecore.cli import blas_on_one_thread
+
+    blas_on_one_thread()  # as the benchgen command line does
+    from scenecore import dataset as D
+
+    dataset, work = Path(args.dataset).resolve(), Path(args.work)
+    scene = D.load_scene(dataset)
+    G = scene.num_configurations
+    stored = sum(D.covisibility_path(dataset, g).exists() for g in range(G))
+    if stored != G:
+        sys.exit(f"{dataset}: {stored} of {G} configurations store co-visibility masks; rerun 'benchgen generate' "
+                 "with the same options to add them")
+    pred = work / f"pred_n{args.n}"
+    build_predictions(dataset, pred, args.n, G)
+    views = args.views or len(scene.test_frames)
+    size = f"{scene.width}x{scene.height}"
+    load0 = os.getloadavg()[0]
+    print(f"N={args.n} x G={G} x {views} views at {size}, workers={args.workers}, LPIPS {'off' if args.no_lpips else 'on'}, "
+          f"{os.cpu_count()} cores, load average {load0:.1f}", flush=True)
+    t0 = time.perf_counter()
+    nbytes = warm(dataset)
+    print(f"read the dataset once ({nbytes / 2**20:.0f} MiB) in {time.perf_counter() - t0:.1f} s", flush=True)
+    lpips = not args.no_lpips
+    runs = {}
+    for name, fn in (("on the fly", lambda: run_path(dataset, pred, work / "score_fly", args.views, args.workers, lpips, False)),
+                     ("stored", lambda: run_path(dataset, pred, work / "score_stored", args.views, args.workers, lpips, True)),
+                     ("benchgen score", lambda: run_cli(dataset, pred, work / "score_cli", args.views, args.workers, lpips))):
+        r = runs[name] = fn()
+        t = r["timings"]
+        print(f"{name:15s} {r['wall_s']:7.1f} s wall, {r['cpu_s']:7.1f} s CPU ("
+              + ", ".join(f"{k.removesuffix('_s').replace('_', ' ')} {v:.1f}" for k, v in t.items() if k != "total_s")
+              + f"); load average {os.getloadavg()[0]:.1f}", flush=True)
+    fly, new, cli = runs["on the fly"], runs["stored"], runs["benchgen score"]
+    same = (np.array_equal(fly["matrix"], new["matrix"], equal_nan=True) and np.array_equal(fly["mask"], new["mask"])
+            and np.array_equal(new["matrix"], cli["matrix"], equal_nan=True)
+            and [r["match"] for r in fly["rows"]] == [r["match"] for r in new["rows"]] == [r["match"] for r in cli["rows"]])
+    ratio = fly["wall_s"] / new["wall_s"]
+    print(f"same masks, PSNR matrix and matches: {same}; speed-up {ratio:.1f}x wall, {fly['cpu_s'] / new['cpu_s']:.1f}x CPU")
+    if not same:
+        sys.exit("the paths disagree")
+
+    def row(label: str, r: dict) -> list[str]:
+        t = r["timings"]
+        return [label, f"{t['ground_truth_s']:.0f}", f"{t['candidate_pass_s']:.0f}", f"{t['metrics_s']:.0f}",
+                f"{t.get('digests_s', 0.0):.0f}", f"{r['wall_s']:.0f}", f"{r['cpu_s']:.0f}", f"{fly['wall_s'] / r['wall_s']:.1f}x"]
+
+    columns = ["path", "ground truth (s)", "candidate pass (s)", "matched metrics (s)", "digests (s)", "total wall (s)",
+               "CPU (s)", "speed-up"]
+    rows = [row("today: masks computed, float64 pass", fly), row("masks stored in the dataset, exact float32 pass", new),
+            row("`benchgen score` (stored masks, with provenance digests)", cli)]
+    protocol = f"N = {args.n}, G = {G}, {views} views, {size}, --workers {args.workers}, LPIPS {'off' if args.no_lpips else 'on'}"
+    data = {"dataset": str(dataset), "n": args.n, "num_configurations": G, "views": views, "size": size,
+            "workers": args.workers, "lpips": lpips, "protocol": protocol, "load_average_before": load0,
+            "load_average_after": os.getloadavg()[0], "identical": same, "speed_up_wall": ratio,
+            "runs": {k: {"wall_s": v["wall_s"], "cpu_s": v["cpu_s"], "timings": v["timings"], "note": v["note"]}
+                     for k, v in runs.items()}}
+    write_results(Path(args.results), "score_speed", " ".join(["python", *sys.argv]), {"score_speed": table(columns, rows)},
+                  data, REPO)
+    print(f"wrote {args.results}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
