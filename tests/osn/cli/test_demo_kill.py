@@ -45,7 +45,8 @@ def _flat(x: Any, prefix: str = "") -> dict[str, Any]:
 
 def _metrics(work: Path) -> dict[str, Any]:
     m = _flat(json.loads((work / "report" / "metrics.json").read_text()))
-    m["command"] = m["command"].replace(str(work), "WORK")  # the command names its own --work
+    # The command and the provenance's locations name the demo's own --work (digests are of contents).
+    m = {k: v.replace(str(work), "WORK") if isinstance(v, str) else v for k, v in m.items()}
     return {k: v for k, v in m.items() if not k.startswith(TIMING)}
 
 
