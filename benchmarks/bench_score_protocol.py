@@ -2,10 +2,13 @@
 
 On one dataset and one prediction directory, one after the other in this process:
 
-* ``on the fly``: the ground truth's co-visibility masks computed from its depth and ids (what
-  every dataset written before ``configs/GGG/covisibility.npz`` existed gets), candidates scored in
-  float64 (``bestofn.EXACT_FLOAT32 = False``);
-* ``stored``: the masks read from the dataset, 8-bit candidates scored in exact float32 blocks;
+* ``on the fly``: today's path before the masks were stored: the ground truth's co-visibility
+  masks computed from its depth and ids (what a dataset written before
+  ``configs/GGG/covisibility.npz`` existed still gets), candidates scored in float64 with torch's
+  own thread count beside the reading workers (``bestofn.EXACT_FLOAT32`` and
+  ``bestofn.THREADS_BESIDE_WORKERS`` False);
+* ``stored``: the masks read from the dataset, 8-bit candidates scored in exact float32 blocks,
+  the products on the cores the workers leave;
 * ``benchgen score``: the command itself on the same inputs (stored masks; it also hashes every
   file it reads for the report's provenance and checks the dataset's verification).
 
@@ -75,7 +78,7 @@ def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpi
     from benchgen.score.scorer import score
     from benchgen.score.truth import evaluated_views, load_truth
 
-    bestofn.EXACT_FLOAT32 = stored
+    bestofn.EXACT_FLOAT32 = bestofn.THREADS_BESIDE_WORKERS = stored
     c0, t0 = cpu_seconds(), time.perf_counter()
     scene = D.load_scene(dataset)
     source = PredictionDir(pred, scene, [f.name for f in evaluated_views(scene, views)])
@@ -85,9 +88,49 @@ def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpi
     res.timings = {"ground_truth_s": t_truth, **res.timings}
     write_report(res, out, source.method, "bench_score_protocol", str(dataset), str(pred))
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
-    bestofn.EXACT_FLOAT32 = True
+    bestofn.EXACT_FLOAT32 = bestofn.THREADS_BESIDE_WORKERS = True
     return {"wall_s": wall, "cpu_s": cpu, "timings": res.timings, "matrix": res.matrix, "mask": truth.mask,
             "rows": res.per_ground_truth, "note": truth.masks_note}
+
+
+def part_costs(dataset: Path, pred: Path, views: int, sample: int = 8) -> dict:
+    """CPU milliseconds per candidate and view of the candidate pass's two parts, on the first
+    ``sample`` candidates, best of three, one thread: reading and checking the files, and the
+    products against all G truths (float64 and exact float32)."""
+    import torch
+
+    from scenecore import dataset as D
+    from benchgen.score import bestofn
+    from benchgen.score.predictions import PredictionDir
+    from benchgen.score.truth import evaluated_views, load_truth
+
+    scene = D.load_scene(dataset)
+    source = PredictionDir(pred, scene, [f.name for f in evaluated_views(scene, views)])
+    truth = load_truth(dataset, views)
+    energy = bestofn.truth_energy(truth)
+    sample = min(sample, len(source))
+    per = sample * truth.num_views
+
+    def best(fn) -> float:
+        out = []
+        for _ in range(3):
+            t0 = time.process_time()
+            fn()
+            out.append(time.process_time() - t0)
+        return 1e3 * min(out) / per
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rgbs = [source.load(n).rgb for n in range(sample)]
+        costs = {"read": best(lambda: [source.load(n) for n in range(sample)])}
+        for name, exact in (("products_float64", False), ("products_float32", True)):
+            bestofn.EXACT_FLOAT32 = exact
+            costs[name] = best(lambda: bestofn.view_psnr(rgbs, truth, energy))
+    finally:
+        bestofn.EXACT_FLOAT32 = True
+        torch.set_num_threads(threads)
+    return costs
 
 
 def run_cli(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool) -> dict:
@@ -143,7 +186,9 @@ def main() -> int:
     for name, fn in (("on the fly", lambda: run_path(dataset, pred, work / "score_fly", args.views, args.workers, lpips, False)),
                      ("stored", lambda: run_path(dataset, pred, work / "score_stored", args.views, args.workers, lpips, True)),
                      ("benchgen score", lambda: run_cli(dataset, pred, work / "score_cli", args.views, args.workers, lpips))):
+        load = os.getloadavg()[0]
         r = runs[name] = fn()
+        r["load"] = (load, os.getloadavg()[0])
         t = r["timings"]
         print(f"{name:15s} {r['wall_s']:7.1f} s wall, {r['cpu_s']:7.1f} s CPU ("
               + ", ".join(f"{k.removesuffix('_s').replace('_', ' ')} {v:.1f}" for k, v in t.items() if k != "total_s")
@@ -152,6 +197,8 @@ def main() -> int:
     same = (np.array_equal(fly["matrix"], new["matrix"], equal_nan=True) and np.array_equal(fly["mask"], new["mask"])
             and np.array_equal(new["matrix"], cli["matrix"], equal_nan=True)
             and [r["match"] for r in fly["rows"]] == [r["match"] for r in new["rows"]] == [r["match"] for r in cli["rows"]])
+    costs = part_costs(dataset, pred, args.views)
+    print("CPU per candidate and view (one thread): " + ", ".join(f"{k} {v:.3f} ms" for k, v in costs.items()))
     ratio = fly["wall_s"] / new["wall_s"]
     print(f"same masks, PSNR matrix and matches: {same}; speed-up {ratio:.1f}x wall, {fly['cpu_s'] / new['cpu_s']:.1f}x CPU")
     if not same:
@@ -160,19 +207,32 @@ def main() -> int:
     def row(label: str, r: dict) -> list[str]:
         t = r["timings"]
         return [label, f"{t['ground_truth_s']:.0f}", f"{t['candidate_pass_s']:.0f}", f"{t['metrics_s']:.0f}",
-                f"{t.get('digests_s', 0.0):.0f}", f"{r['wall_s']:.0f}", f"{r['cpu_s']:.0f}", f"{fly['wall_s'] / r['wall_s']:.1f}x"]
+                f"{t.get('digests_s', 0.0):.0f}", f"{r['wall_s']:.0f}", f"{r['cpu_s']:.0f}", f"{fly['wall_s'] / r['wall_s']:.1f}x",
+                f"{fly['cpu_s'] / r['cpu_s']:.1f}x", f"{r['load'][0]:.1f} / {r['load'][1]:.1f}"]
 
     columns = ["path", "ground truth (s)", "candidate pass (s)", "matched metrics (s)", "digests (s)", "total wall (s)",
-               "CPU (s)", "speed-up"]
-    rows = [row("today: masks computed, float64 pass", fly), row("masks stored in the dataset, exact float32 pass", new),
+               "CPU (s)", "speed-up (wall)", "speed-up (CPU)", "load average at start / end"]
+    rows = [row("before: masks computed, float64 pass on torch's threads", fly),
+            row("masks stored in the dataset, exact float32 pass beside the workers", new),
             row("`benchgen score` (stored masks, with provenance digests)", cli)]
+    nv = args.n * views / 1e3
+    parts = [["read and check one candidate's files (colour PNG, depth EXR, id PNG)", f"{costs['read']:.2f}",
+              f"{costs['read'] * nv:.0f}"],
+             ["products against all G ground truths, float64", f"{costs['products_float64']:.2f}",
+              f"{costs['products_float64'] * nv:.0f}"],
+             ["products against all G ground truths, exact float32", f"{costs['products_float32']:.2f}",
+              f"{costs['products_float32'] * nv:.0f}"]]
     protocol = f"N = {args.n}, G = {G}, {views} views, {size}, --workers {args.workers}, LPIPS {'off' if args.no_lpips else 'on'}"
     data = {"dataset": str(dataset), "n": args.n, "num_configurations": G, "views": views, "size": size,
-            "workers": args.workers, "lpips": lpips, "protocol": protocol, "load_average_before": load0,
-            "load_average_after": os.getloadavg()[0], "identical": same, "speed_up_wall": ratio,
-            "runs": {k: {"wall_s": v["wall_s"], "cpu_s": v["cpu_s"], "timings": v["timings"], "note": v["note"]}
+            "workers": args.workers, "lpips": lpips, "protocol": protocol, "load_average_at_start": load0,
+            "load_average_at_end": os.getloadavg()[0], "identical": same, "speed_up_wall": ratio,
+            "cpu_ms_per_candidate_view": costs,
+            "runs": {k: {"wall_s": v["wall_s"], "cpu_s": v["cpu_s"], "timings": v["timings"], "note": v["note"],
+                         "load_average": v["load"]}
                      for k, v in runs.items()}}
-    write_results(Path(args.results), "score_speed", " ".join(["python", *sys.argv]), {"score_speed": table(columns, rows)},
+    write_results(Path(args.results), "score_speed", " ".join(["python", *sys.argv]), {"score_speed": table(columns, rows),
+                  "score_speed_parts": table(["part of the candidate pass", "CPU ms per candidate and view",
+                                              f"CPU s for N x V = {args.n} x {views}"], parts)},
                   data, REPO)
     print(f"wrote {args.results}")
     return 0

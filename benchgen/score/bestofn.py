@@ -16,6 +16,7 @@ of chunks in flight and the ``(N, G)`` mean-PSNR matrix; it does not grow with N
 from __future__ import annotations
 
 import math
+import os
 from typing import Any, Sequence
 
 import numpy as np
@@ -160,14 +161,33 @@ def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progres
     chunks = [(i, min(i + size, N)) for i in range(0, N, size)]
     energy = truth_energy(truth)
     _JOB.update(source=source)
+    threads = torch.get_num_threads()
     try:
+        torch.set_num_threads(pass_threads(workers))
         with tqdm(total=N, desc="candidates", unit="cand", disable=not progress, dynamic_ncols=True) as bar:
             for (a, b), rgbs in zip(chunks, ordered_map(_read_chunk, chunks, workers)):
                 out[a:b] = M.best_of_n(view_psnr(rgbs, truth, energy)).mean_scores
                 bar.update(b - a)
     finally:
         _JOB.clear()
+        torch.set_num_threads(threads)
     return out
+
+
+#: Give the pass's products only the cores the reading workers leave (:func:`pass_threads`);
+#: False: torch's own thread count, as before (``benchmarks/bench_score_protocol.py`` times both).
+THREADS_BESIDE_WORKERS = True
+
+
+def pass_threads(workers: int) -> int:
+    """Torch threads for the products while ``workers`` processes read candidates: the cores they
+    leave, at least one: on 2 cores with 2 workers, torch's two threads beside two busy readers
+    wait on each other, and the pass took several times as long as with one thread."""
+    threads = torch.get_num_threads()
+    if workers <= 1 or not THREADS_BESIDE_WORKERS:
+        return threads
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(threads, cores - workers))
 
 
 def match(matrix: np.ndarray) -> M.BestOfN:

@@ -162,7 +162,7 @@ def merge_into_verification(verification: dict[str, Any], checks: list[dict[str,
             c["passed"] = False
             c.setdefault("failures", []).append(f"co-visibility masks: {r['detail']}")
     statuses = sorted({r["status"] for r in checks})
-    verification["covisibility_masks"] = statuses[0] if len(statuses) == 1 else "mixed"
+    verification["covisibility_masks"] = statuses[0] if len(statuses) == 1 else "mixed" if statuses else "absent"
     if by_index:
         verification["passed"] = all(c["passed"] for c in by_index.values())
     notes = []

@@ -181,3 +181,34 @@ def test_verify_catches_a_tampered_mask(tiny_dataset, tmp_path, capsys):
     D.write_covisibility(data, 2, scene, stored.masks, stored.version, stored.rtol)
     assert benchgen(["verify", str(data), "--quiet"]) == 0
     assert D.load_verification(data)["covisibility_masks"] == "match"
+
+
+def test_exact_float32_products_equal_the_float64_errors_bit_for_bit(tiny_dataset):
+    """8-bit candidates are scored in float32 blocks (bestofn._sse_8bit): the same squared errors as
+    the float64 products, bit for bit, at extreme values and at sizes that leave partial blocks."""
+    import torch
+
+    from benchgen.score import bestofn
+
+    rng = np.random.default_rng(0)
+    for P, G in ((33001, 3), (1000, 5)):  # more pixels than one block of squares; 3P not a multiple of 256
+        mask = rng.random((G, P)) < 0.8
+        mask[0] = True
+        y8 = (np.where(rng.random((G, 3 * P)) < 0.5, 255, rng.integers(0, 256, (G, 3 * P))) * np.repeat(mask, 3, 1)).astype(np.uint8)
+        x8 = rng.integers(0, 256, (4, 3 * P)).astype(np.uint8)
+        x8[0], x8[1] = 255, 0
+        y2 = np.einsum("gp,gp->g", y8, y8, dtype=np.float64)
+        x = torch.from_numpy(x8.astype(np.float64) * 257)
+        sq = x.square().reshape(4, -1, 3).sum(-1)
+        expected = sq @ torch.from_numpy(mask).double().T - 2 * 257 * (x @ torch.from_numpy(y8).double().T) + 257**2 * torch.from_numpy(y2)
+        assert torch.equal(bestofn._sse_8bit(x8, y8, mask, y2), expected)
+    # On the dataset: the PSNR of the whole pass is the same either way.
+    truth = load_truth(tiny_dataset)
+    rgbs = [np.clip(truth.views(g)[0].astype(int) + rng.integers(-30, 31, truth.views(g)[0].shape), 0, 255).astype(np.uint8)
+            for g in range(3)]
+    try:
+        bestofn.EXACT_FLOAT32 = False
+        slow = bestofn.view_psnr(rgbs, truth)
+    finally:
+        bestofn.EXACT_FLOAT32 = True
+    assert np.array_equal(bestofn.view_psnr(rgbs, truth), slow, equal_nan=True)
