@@ -54,6 +54,20 @@ def _inputs_line(run_dir: Path) -> str:
     return f"Inputs: {source}."
 
 
+def _consistency_lines(run_dir: Path) -> list[str]:
+    """A paragraph on the SfM reconstructions the preprocessing check found inconsistent, and what
+    was done with each (``meta.consistency`` of the run's ``inputs.json``; none: no lines)."""
+    try:
+        checks = read_json(Path(run_dir) / "inputs" / "inputs.json").get("meta", {}).get("consistency") or {}
+    except (OSError, ValueError, AttributeError):
+        return []
+    flagged = [c for c in checks.values() if isinstance(c, dict) and c.get("message")]
+    if not flagged:
+        return []
+    return ["SfM reconstructions that contradict the video (checked without ground truth, docs/preprocess.md):",
+            "", *[f"- {c.get('action', '?')}: {c['message']}" for c in flagged], ""]
+
+
 def _environment_lines(run_dir: Path) -> list[str]:
     """What the run trained with (``run.json``; none for runs trained before it was recorded)."""
     try:
@@ -267,6 +281,7 @@ def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str)
         *P.banner_lines(e.get("provenance")),
         _inputs_line(run_dir),
         "",
+        *_consistency_lines(run_dir),
         *_environment_lines(run_dir),
         f"{e['num_samples']} sampled configurations against {e['num_gt']} ground-truth configurations on "
         f"{e['num_views']} test views each; {100 * e['covisible_fraction']:.1f}% of test pixels are co-visible "

@@ -7,6 +7,8 @@ Modules:
 * :mod:`~osn.preprocess.oracle`: ``osn oracle``, the inputs from a benchgen dataset's ground truth.
 * :mod:`~osn.preprocess.sfm`: COLMAP (pycolmap) reconstruction of one object.
 * :mod:`~osn.preprocess.repair`: finding and re-posing frames posed against their own matches.
+* :mod:`~osn.preprocess.consistency`: whole reconstructions checked against the masks, their own
+  frames and the anchor without ground truth; frames dropped, depths distrusted or objects dropped.
 * :mod:`~osn.preprocess.video`: ``osn preprocess``, per-object SfM of a whole video (a folder of
   frames and masks, or a benchgen dataset).
 * :mod:`~osn.preprocess.alignment`: SfM against ground truth (accuracy, units, test-view alignment),

@@ -22,6 +22,7 @@ import numpy as np
 from scenecore import dataset as D
 from scenecore.cameras import intrinsics_from_fov
 from osn.preprocess.alignment import align_to_ground_truth
+from osn.preprocess.consistency import ObjectObservations, Verdict, assess_scene
 from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import (
     IGNORE_ID,
@@ -58,16 +59,31 @@ def preprocess_video(
     ``images (T, H, W, 3)`` uint8, ``masks (T, H, W)`` instance ids, ``K (3, 3)`` pixel
     intrinsics, ``timestamps (T,)``. An object that fails to register stops everything when
     ``cfg.on_failure`` is ``stop`` or it is the ``anchor``; otherwise it is dropped (its pixels
-    become ``IGNORE_ID``) and the report says why. ``work_dir`` keeps each object's COLMAP
-    working directory as ``work_dir/object_<id>`` (:func:`object_work_dir`) for inspection.
-    ``workers``: objects reconstructed at once, on threads (pycolmap releases the GIL; each
-    object's SfM is single-threaded and seeded, so the result does not depend on it).
+    become ``IGNORE_ID``) and the report says why. Every reconstruction is then checked against
+    the masks and its own frames (:mod:`osn.preprocess.consistency`): contradicting frames are
+    dropped, an object whose depths disagree keeps no sparse depth, one that contradicts its masks
+    as a whole is dropped like a failed one (an anchor so contradicted stops everything).
+    ``work_dir`` keeps each object's COLMAP working directory as ``work_dir/object_<id>``
+    (:func:`object_work_dir`) for inspection. ``workers``: objects reconstructed at once, on
+    threads (pycolmap releases the GIL; each object's SfM is single-threaded and seeded, so the
+    result does not depend on it).
     """
+    inputs, report = _preprocess_video(images, masks, K, timestamps, object_names, anchor, cfg, progress, work_dir, workers)
+    return without_untrusted_depths(inputs), report
+
+
+def _preprocess_video(
+    images: np.ndarray, masks: np.ndarray, K: np.ndarray, timestamps: np.ndarray, object_names: dict[int, str],
+    anchor: int, cfg: PreprocessConfig, progress: Callable[[str], None] | None, work_dir: str | Path | None, workers: int,
+) -> tuple[SceneInputs, PreprocessReport]:
+    """:func:`preprocess_video` with the sparse depths the consistency check distrusts still in
+    the inputs (``meta["untrusted_depths"]``): ground truth measures each object's unit on them."""
     T, H, W = masks.shape
     check_downscale(W, H, cfg.anchor_downscale)  # before SfM, which costs minutes
     report = PreprocessReport()
     objects: list[ObjectInputs] = []
     results = reconstruct_objects(images, masks, K, object_names, anchor, cfg, progress, work_dir, workers)
+    verdicts = check_reconstructions(results, masks, K, timestamps, object_names, anchor, cfg)
     for oid, name in sorted(object_names.items()):
         sfm = results[oid]
         if isinstance(sfm, ObjectRegistrationError):
@@ -75,6 +91,15 @@ def preprocess_video(
             report.dropped.append(oid)
             report.objects.append({"id": oid, "name": name, "error": str(sfm)})
             continue
+        verdict = verdicts[oid]
+        if verdict.drop:
+            log.warning("%s", verdict.message)
+            report.dropped.append(oid)
+            report.objects.append({"id": oid, "name": name, "error": verdict.message, "consistency": verdict.record()})
+            continue
+        if verdict.message:
+            log.warning("%s", verdict.message)
+        sfm = without_frames(sfm, verdict.bad_frames)
         flags = occluding_flags(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, W, H)
         drop = cfg.drop_occluding == "all" or (cfg.drop_occluding == "objects" and oid != anchor)
         keep = [~f if drop else np.ones(len(f), dtype=bool) for f in flags]
@@ -83,7 +108,7 @@ def preprocess_video(
             object_inputs_from_observations(oid, name, sfm.frames, sfm.cam_to_obj, pix, dep, wt, K, W, H,
                                             cfg.box_padding, metres_per_unit=None)
         )
-        report.objects.append(_object_report(oid, name, sfm, flags, drop))
+        report.objects.append({**_object_report(oid, name, sfm, flags, drop), "consistency": verdict.record()})
     masks = masks.copy()
     for oid in report.dropped:
         masks[masks == oid] = IGNORE_ID
@@ -91,9 +116,61 @@ def preprocess_video(
     inputs = SceneInputs(
         width=W, height=H, K=K, timestamps=np.asarray(timestamps, dtype=np.float64), images=images, masks=masks,
         objects=objects, anchor=anchor, scene_near=scene_near, scene_far=scene_far, source="colmap",
-        meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped},
+        meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped,
+              "untrusted_depths": [k for k, v in sorted(verdicts.items()) if not v.use_depths and not v.drop],
+              "consistency": {str(k): consistency_summary(v) for k, v in sorted(verdicts.items())}},
     )
     return inputs, report
+
+
+def check_reconstructions(
+    results: dict[int, ObjectSfM | ObjectRegistrationError], masks: np.ndarray, K: np.ndarray, timestamps: np.ndarray,
+    object_names: dict[int, str], anchor: int, cfg: PreprocessConfig,
+) -> dict[int, Verdict]:
+    """The consistency verdict of every registered object (:func:`osn.preprocess.consistency.assess_scene`,
+    on the full frames the sparse pixels index). Raises ``ObjectRegistrationError`` when the
+    anchor's reconstruction contradicts the video so much that it would have to be dropped."""
+    observed = []
+    for oid, sfm in sorted(results.items()):
+        if isinstance(sfm, ObjectRegistrationError):
+            continue
+        # The anchor's SfM ran on frames averaged down: its error in full-frame pixels.
+        f = cfg.anchor_downscale if oid == anchor else 1
+        observed.append(ObjectObservations(oid, sfm.frames, sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth,
+                                           sfm.reprojection_error_px * f))
+    verdicts = assess_scene(observed, masks, K, timestamps, anchor, cfg.min_frames, object_names)
+    if anchor in verdicts and verdicts[anchor].drop:
+        raise ObjectRegistrationError(verdicts[anchor].message)
+    return verdicts
+
+
+def without_frames(sfm: ObjectSfM, frames: list[int]) -> ObjectSfM:
+    """``sfm`` without its registrations at the time indices ``frames``."""
+    if not frames:
+        return sfm
+    keep = np.flatnonzero(~np.isin(sfm.frames, frames))
+    return dataclasses.replace(
+        sfm, frames=sfm.frames[keep], cam_to_obj=sfm.cam_to_obj[keep], sparse_pix=[sfm.sparse_pix[i] for i in keep],
+        sparse_depth=[sfm.sparse_depth[i] for i in keep], sparse_weight=[sfm.sparse_weight[i] for i in keep],
+    )
+
+
+def consistency_summary(v: Verdict) -> dict:
+    """What ``inputs.json`` keeps of a verdict (the per-frame figures stay in ``preprocess_report.json``)."""
+    return {k: x for k, x in v.record().items() if not k.startswith("frame_")}
+
+
+def without_untrusted_depths(inputs: SceneInputs) -> SceneInputs:
+    """The inputs without the sparse depths of the objects in ``meta["untrusted_depths"]`` (the
+    consistency check found them disagreeing across frames): those objects train on their pixels
+    alone; their range and box, set from every depth, are kept."""
+    untrusted = set(inputs.meta.get("untrusted_depths", []))
+    if not untrusted:
+        return inputs
+    objects = [dataclasses.replace(o, sparse_pix=[p[:0] for p in o.sparse_pix], sparse_depth=[d[:0] for d in o.sparse_depth],
+                                   sparse_weight=[w[:0] for w in o.sparse_weight]) if o.id in untrusted else o
+               for o in inputs.objects]
+    return dataclasses.replace(inputs, objects=objects)
 
 
 def reconstruct_objects(
@@ -186,7 +263,8 @@ def _object_report(oid: int, name: str, sfm: ObjectSfM, flags: list[np.ndarray],
 
 
 def report_lines(objects: list[dict]) -> list[str]:
-    """One line per object of a :class:`PreprocessReport` (and one per repaired frame)."""
+    """One line per object of a :class:`PreprocessReport` (and one per repaired frame, and one
+    for a reconstruction the consistency check found wrong)."""
     lines = []
     for r in objects:
         if "error" in r:
@@ -206,6 +284,8 @@ def report_lines(objects: list[dict]) -> list[str]:
         for f in r.get("repaired_frames", []):
             lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "
                          f"matches fit SfM's pose, {100 * f['consistency_after']:.1f}% after)")
+        if r.get("consistency", {}).get("message"):
+            lines.append(f"    {r['consistency']['action']}: {r['consistency']['message']}")
     return lines
 
 
@@ -226,11 +306,12 @@ def preprocess_dataset(
     scene = D.load_scene(root)
     images, depths, masks = video if video is not None else D.read_training_video(root, scene)
     names = {o.id: o.name for o in scene.objects}
-    inputs, report = preprocess_video(
+    inputs, report = _preprocess_video(
         images, masks, scene.intrinsics.matrix(), scene.timestamps.copy(), names, scene.anchor_id, cfg, progress, work_dir,
         workers,
     )
     align_to_ground_truth(inputs, report, scene, depths, masks)
+    inputs = without_untrusted_depths(inputs)  # measured above; never trained on
     inputs.meta["dataset"] = str(root)
     check_inputs(inputs, root)
     return inputs, report

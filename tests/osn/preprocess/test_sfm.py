@@ -49,6 +49,9 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     # ... and, without ground truth, the depths in front of what other frames saw
     for r in report.objects:
         assert "error" in r or 0 <= r["occluding_depths"] < 0.5 * r["sparse_depths"], r
+    # The consistency check (no ground truth) passes every object SfM got right: no false alarm.
+    assert all(r["consistency"]["action"] == "keep" for r in report.objects if "error" not in r), report.objects
+    assert inputs.meta["untrusted_depths"] == [] and set(inputs.meta["consistency"]) == {str(r["id"]) for r in report.objects if "consistency" in r}
     # The count is taken on each object's own frames, camera and depths: the same on inputs that
     # keep every depth (normalised: a rigid motion and one unit, which change no share). By default
     # every object but the anchor loses exactly the flagged depths, frame by frame.
