@@ -28,11 +28,17 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _load_spec(args: argparse.Namespace):
+    from benchgen.scene.procedural import random_spec
     from benchgen.scene.spec import load_preset, load_spec
 
-    if (args.preset is None) == (args.spec is None):
-        raise UserError("give exactly one of --preset NAME or --spec FILE")
-    spec = load_preset(args.preset) if args.preset else load_spec(args.spec)
+    if sum(x is not None for x in (args.preset, args.spec, args.random)) != 1:
+        raise UserError("give exactly one of --preset NAME, --spec FILE or --random SEED")
+    if args.protocol is not None and args.random is None:
+        raise UserError("--protocol chooses the rig of a --random scene; a preset or spec file sets its own")
+    if args.random is not None:
+        spec = random_spec(args.random, args.protocol or "orbit")
+    else:
+        spec = load_preset(args.preset) if args.preset else load_spec(args.spec)
     return spec.with_overrides(resolution=args.resolution, samples=args.cycles_samples, configs=args.configs, seed=args.seed)
 
 
@@ -60,8 +66,21 @@ def _cmd_suite(args: argparse.Namespace) -> int:
     from benchgen.render.suite import SUITE_PRESETS, run_suite
     from benchgen.scene.spec import SpecError
 
-    presets = [p for p in args.presets.split(",") if p] if args.presets else SUITE_PRESETS
+    from benchgen.scene.procedural import parse_seeds, random_spec
+
+    if args.random is not None and args.presets:
+        raise UserError("give --presets or --random, not both")
+    if args.protocol is not None and args.random is None:
+        raise UserError("--protocol chooses the rig of --random scenes; the presets set their own")
     try:
+        if args.random is not None:
+            try:
+                seeds = parse_seeds(args.random)
+            except ValueError as e:
+                raise UserError(f"--random: {e}") from None
+            presets = [random_spec(s, args.protocol or "orbit") for s in seeds]
+        else:
+            presets = [p for p in args.presets.split(",") if p] if args.presets else SUITE_PRESETS
         rows = run_suite(args.out, presets, resolution=args.resolution, configs=args.configs,
                          workers=args.workers, executor=args.executor, address=args.address, progress=not args.quiet)
     except SpecError as e:
@@ -111,6 +130,12 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_argument_group("scene (one of)")
     src.add_argument("--preset", help="a built-in spec (see 'benchgen presets')")
     src.add_argument("--spec", help="a YAML spec file (docs/benchgen.md)")
+    src.add_argument("--random", type=int, default=None, metavar="SEED",
+                     help="the procedural family's scene for SEED (2-6 random movers, random room, textures, motions and "
+                     "rig; 64 px, G=20, 30 test views unless overridden; seeds 0-999: development split, 1000-1999: "
+                     "held-out split, docs/benchgen.md). The spec is written to OUT/spec.yaml, so --spec reruns it")
+    p.add_argument("--protocol", choices=("orbit", "stereo", "multi-camera"), default=None,
+                   help="rig protocol of a --random scene (default: orbit, the paper's 15 x 15 arc)")
     p.add_argument("--out", required=True, help="output dataset directory (created; resumed if it holds the same spec)")
     p.add_argument("--resolution", type=int, default=None, help="square image size in pixels (default: the spec's)")
     p.add_argument("--cycles-samples", type=int, default=None, help="Cycles samples per pixel (default: the spec's)")
@@ -144,6 +169,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=int, default=None, help="square image size in pixels for every preset (default: each preset's)")
     p.add_argument("--configs", type=int, default=None, help="number G of ground-truth configurations per preset (default: each preset's, 50)")
     p.add_argument("--presets", default=None, help=f"comma-separated subset of the suite (default: all of {','.join(SUITE_PRESETS)})")
+    p.add_argument("--random", default=None, metavar="A:B",
+                   help="instead of the presets, the procedural family's scenes for seeds A to B-1 (also 'S' or a "
+                   "comma-separated list), each under OUT/random-SEED; see 'generate --random'")
+    p.add_argument("--protocol", choices=("orbit", "stereo", "multi-camera"), default=None,
+                   help="rig protocol of the --random scenes (default: orbit)")
     _add_run_options(p)
     add_score_command(sub)
     add_import_command(sub)

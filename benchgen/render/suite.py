@@ -80,7 +80,7 @@ def _interval_text(name: str, lo: float, hi: float) -> str:
     return f"{name} [{lo:.3g}, {hi:.3g}]"
 
 
-def dataset_row(preset: str, root: str | Path, seconds: float) -> SuiteRow:
+def dataset_row(preset: str, root: str | Path, seconds: float, protocol: str) -> SuiteRow:
     """The table row of a generated dataset (reads its manifest, region, depths and verification)."""
     root = Path(root)
     scene, region = D.load_scene(root), D.load_valid_region(root)
@@ -93,10 +93,9 @@ def dataset_row(preset: str, root: str | Path, seconds: float) -> SuiteRow:
     width = {k: np.log(hi[k] / lo[k]) if hi[k] > lo[k] else -np.inf for k in free}
     k_min, k_max = min(free, key=width.get), max(free, key=width.get)
     cfgs = D.read_json(root / "verification.json").get("configurations", []) if (root / "verification.json").is_file() else []
-    spec = load_preset(preset)
     return SuiteRow(
         preset=preset,
-        protocol=spec.rig.protocol,
+        protocol=protocol,
         objects=len(scene.objects) - 1,
         train_frames=len(scene.train_frames),
         test_frames=len(scene.test_frames),
@@ -127,7 +126,7 @@ def table_lines(rows: Sequence[SuiteRow]) -> list[str]:
 
 def run_suite(
     out: str | Path,
-    presets: Sequence[str] = SUITE_PRESETS,
+    presets: Sequence[str | SceneSpec] = SUITE_PRESETS,
     resolution: int | None = None,
     configs: int | None = None,
     workers: int = 1,
@@ -136,9 +135,11 @@ def run_suite(
     progress: bool = True,
     echo: Callable[[str], None] = print,
 ) -> list[SuiteRow]:
-    """Generate (or finish) every preset under ``out`` and write the table; returns its rows."""
+    """Generate (or finish) every preset (a name, or a spec such as a procedural scene, under its
+    name) under ``out`` and write the table; returns its rows."""
     out = Path(out)
-    specs = {p: load_preset(p).with_overrides(resolution=resolution, configs=configs) for p in presets}  # bad names fail before any render
+    specs = {p if isinstance(p, str) else p.name: (load_preset(p) if isinstance(p, str) else p).with_overrides(resolution=resolution, configs=configs)
+             for p in presets}  # bad names fail before any render
     with output_lock(out):  # suite.json and suite.md; each dataset under it has its own lock
         return _run_suite_locked(out, specs, workers, executor, address, progress, echo)
 
@@ -157,7 +158,7 @@ def _run_suite_locked(out: Path, specs: dict[str, SceneSpec], workers: int, exec
         # A resumed preset adds this run's time to what earlier runs spent on it.
         before = previous.get(preset, {})
         spent = time.perf_counter() - t0 + (before.get("seconds", 0.0) if before.get("resolution") == spec.width else 0.0)
-        rows.append(dataset_row(preset, out / preset, spent))
+        rows.append(dataset_row(preset, out / preset, spent, spec.rig.protocol))
         D.atomic_write_json(state_path, {"rows": [asdict(r) for r in rows] + [r for p, r in previous.items() if p not in {x.preset for x in rows}]})
         D.atomic_write_bytes(out / "suite.md", ("\n".join(table_lines(rows)) + "\n").encode())
     for line in table_lines(rows):

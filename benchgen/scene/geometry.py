@@ -52,6 +52,8 @@ def part_mesh(part: Part) -> trimesh.Trimesh:
         m = revolved_mesh([[0, -h / 2], [r, -h / 2], [0, h / 2]])  # centred like the cylinder
     elif part.type == "torus":
         m = trimesh.creation.torus(major_radius=p["major_radius"], minor_radius=p["minor_radius"], major_sections=48, minor_sections=24)
+    elif part.type == "lathe":
+        m = revolved_mesh(lathe_outline(p["profile"]))
     else:  # spec.py rejects unknown types; this guards programmatic use
         raise ValueError(f"unknown part type {part.type!r}")
     m.apply_transform(euler_matrix(part.location, part.rotation))
@@ -76,6 +78,27 @@ def revolved_mesh(profile: list[list[float]], sections: int = REVOLVE_SECTIONS) 
     return trimesh.creation.revolve(np.array(pts), sections=sections)
 
 
+def lathe_outline(profile: list[list[float]]) -> list[list[float]]:
+    """The polyline ``revolved_mesh`` turns into a lathe's closed surface: the profile polygon
+    closed, or, when one of its edges lies on the axis, opened there (that edge sweeps no area)."""
+    n = len(profile)
+    for i in range(n):
+        if profile[i][0] == 0 and profile[(i + 1) % n][0] == 0:
+            return [profile[(i + 1 + j) % n] for j in range(n)]  # starts and ends on the axis
+    return [*profile, profile[0]]
+
+
+def inside_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Whether 2D ``points (N, 2)`` lie inside the simple ``polygon (M, 2)`` (even-odd rule; a
+    point on an edge may fall either way)."""
+    x, y = points[:, 0:1], points[:, 1:2]
+    a, b = polygon, np.roll(polygon, -1, axis=0)
+    straddles = (a[:, 1] > y) != (b[:, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross_x = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+    return (np.count_nonzero(straddles & (x < cross_x), axis=1) % 2).astype(bool)
+
+
 def part_contains(part: Part, points: np.ndarray) -> np.ndarray:
     """Whether object-frame points lie strictly inside the analytic primitive.
 
@@ -97,6 +120,8 @@ def part_contains(part: Part, points: np.ndarray) -> np.ndarray:
         return (np.abs(z) < h / 2) & (r < p["radius"] * (0.5 - z / h))
     if part.type == "torus":
         return (r - p["major_radius"]) ** 2 + z**2 < p["minor_radius"] ** 2
+    if part.type == "lathe":
+        return inside_polygon(np.stack([r, z], axis=1), np.asarray(p["profile"], dtype=np.float64))
     raise ValueError(f"unknown part type {part.type!r}")
 
 

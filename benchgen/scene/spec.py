@@ -25,6 +25,7 @@ PART_PARAMS: dict[str, tuple[str, ...]] = {
     "cylinder": ("radius", "height"),
     "cone": ("radius", "height"),
     "torus": ("major_radius", "minor_radius"),
+    "lathe": ("profile",),
 }
 TEXTURE_KINDS = ("noise", "checker", "voronoi")
 TRAIN_PATHS = ("diagonal", "sweep")
@@ -248,6 +249,47 @@ def _texture(c: _Ctx, d: Any, where: str, default_colors: list[list[float]] | No
     return Texture(kind, colors, c.number(d.get("scale", 4.0), f"{where}.scale", 0.0, strict_lo=True), seed)
 
 
+#: Most points of a lathe profile: enough for cups, vases and rings, few enough that checking it
+#: for self-intersections (every pair of edges) stays instant.
+MAX_PROFILE_POINTS = 64
+
+
+def _segments_cross(p: list[float], q: list[float], a: list[float], b: list[float]) -> bool:
+    """Whether the closed segments ``pq`` and ``ab`` of the plane intersect (touching included)."""
+    def orient(u: list[float], v: list[float], w: list[float]) -> float:
+        return (v[0] - u[0]) * (w[1] - u[1]) - (v[1] - u[1]) * (w[0] - u[0])
+
+    def on(u: list[float], v: list[float], w: list[float]) -> bool:
+        return min(u[0], v[0]) <= w[0] <= max(u[0], v[0]) and min(u[1], v[1]) <= w[1] <= max(u[1], v[1])
+
+    d1, d2, d3, d4 = orient(a, b, p), orient(a, b, q), orient(p, q, a), orient(p, q, b)
+    if ((d1 > 0) != (d2 > 0)) and ((d3 > 0) != (d4 > 0)) and 0 not in (d1, d2, d3, d4):
+        return True
+    return (d1 == 0 and on(a, b, p)) or (d2 == 0 and on(a, b, q)) or (d3 == 0 and on(p, q, a)) or (d4 == 0 and on(p, q, b))
+
+
+def _profile(c: _Ctx, v: Any, where: str) -> list[list[float]]:
+    """A lathe profile: a simple polygon of ``[r, z]`` points in the half-plane r >= 0 (closed from
+    the last point back to the first), at least 3 points, non-zero area, no edges crossing."""
+    if not isinstance(v, list) or not 3 <= len(v) <= MAX_PROFILE_POINTS:
+        raise c.fail(where, f"expected a list of 3 to {MAX_PROFILE_POINTS} [r, z] points")
+    pts = [c.vector(x, f"{where}[{i}]", 2) for i, x in enumerate(v)]
+    for i, (r, _) in enumerate(pts):
+        if r < 0:
+            raise c.fail(f"{where}[{i}]", f"the radius must be >= 0, got {r}")
+    n = len(pts)
+    area = 0.5 * sum(pts[i][0] * pts[(i + 1) % n][1] - pts[(i + 1) % n][0] * pts[i][1] for i in range(n))
+    if abs(area) < 1e-12:
+        raise c.fail(where, "the profile encloses no area")
+    for i in range(n):
+        for j in range(i + 1, n):
+            if j == i + 1 or (i == 0 and j == n - 1):
+                continue  # neighbouring edges share a point
+            if _segments_cross(pts[i], pts[(i + 1) % n], pts[j], pts[(j + 1) % n]):
+                raise c.fail(where, f"edges {i} and {j} of the profile cross (it must be a simple polygon)")
+    return pts
+
+
 def _part(c: _Ctx, d: Any, where: str) -> Part:
     if not isinstance(d, dict):
         raise c.fail(where, "expected a mapping")
@@ -260,7 +302,10 @@ def _part(c: _Ctx, d: Any, where: str) -> Part:
     for p in params:
         if p not in d:
             raise c.fail(f"{where}.{p}", f"missing (a {ptype} needs {', '.join(params)})")
-        values[p] = c.vector(d[p], f"{where}.{p}", 3, positive=True) if p == "size" else c.number(d[p], f"{where}.{p}", 0.0, strict_lo=True)
+        if p == "profile":
+            values[p] = _profile(c, d[p], f"{where}.{p}")
+        else:
+            values[p] = c.vector(d[p], f"{where}.{p}", 3, positive=True) if p == "size" else c.number(d[p], f"{where}.{p}", 0.0, strict_lo=True)
     if ptype == "torus" and values["minor_radius"] >= values["major_radius"]:
         raise c.fail(f"{where}.minor_radius", "must be smaller than major_radius")
     return Part(ptype, values, c.vector(d.get("location", [0, 0, 0]), f"{where}.location", 3), c.vector(d.get("rotation", [0, 0, 0]), f"{where}.rotation", 3))

@@ -1,0 +1,443 @@
+"""A procedural scene family: a valid, plausible scene spec from an integer seed (numpy + trimesh).
+
+``random_spec(seed)`` draws a room with random textures, 2 to 6 movers, each one of a vocabulary
+of shapes made of primitive and lathe parts (thin plates and rods, rings and arches with holes,
+cups, tables and L-shapes that are concave), sized over a decade (0.15 m to 1.5 m), textured and
+keyframed, and the camera rig of one of the three protocols with a random arc, height, distance
+and field of view. About half the movers stand on the floor and turn about the vertical only (their
+base touches the floor at every time: the contact case), the others fly and tumble; about half the
+movers after the first are sent across the line of sight of an earlier one, in front of or behind
+it (the occlusion case).
+
+The number of movers is drawn from the seed alone; the rest of a draw is kept when it passes the checks any spec passes (``plausibility.check_authored_scene``:
+inside the room, no interpenetration, no camera inside an object) and the family's own: every
+mover in view (centre inside the image, in front of the camera, at least ``MIN_EXTENT`` of the
+image width across) in at least ``MIN_VISIBLE_SHARE`` of the training frames; some mover on the
+floor; some pair whose image discs overlap in a training frame. A rejected draw is redrawn
+(with the same number of movers) from the next sub-seed, so a seed always gives the same spec (``Generator([seed, attempt])``).
+
+The draw is independent of resolution and G: ``resolution`` and ``configs`` only set the spec's
+render settings, so ``--random 7 --resolution 128`` is seed 7's scene at 128 px.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from benchgen.scene.geometry import build_scene, interpolate_poses, part_mesh, rig_cameras
+from benchgen.scene.plausibility import check_authored_scene
+from benchgen.scene.spec import RIG_PROTOCOLS, TEXTURE_KINDS, Keyframe, Part, RigSpec, SceneSpec, SpecError, spec_from_dict
+from scenecore.cameras import intrinsics_from_fov, project
+
+#: The two fixed splits of the family: tune defaults on ``development``, report on ``held-out``
+#: and never tune on it. Seeds are half-open ranges; docs/benchgen.md states them too.
+SPLITS: dict[str, range] = {"development": range(0, 1000), "held-out": range(1000, 2000)}
+#: Movers per scene (inclusive).
+MOVERS = (2, 6)
+#: Largest extent of a mover in metres: log-uniform over a decade.
+SIZE_RANGE = (0.15, 1.5)
+#: A mover counts as in view in a training frame when its centre projects inside the image, in
+#: front of the camera, and its projected extent is at least this share of the image width (8 px
+#: at 64 px); it must be in view in at least ``MIN_VISIBLE_SHARE`` of the training frames.
+MIN_EXTENT = 1.0 / 8
+MIN_VISIBLE_SHARE = 0.6
+#: Draws tried before a seed is reported as unusable (none has needed more than a few dozen).
+MAX_ATTEMPTS = 500
+#: Draws of one mover before the scene is drawn anew with it where it collides.
+MOVER_TRIES = 30
+#: Render settings of the family's datasets (the demo's size: 64 px, 30 test views, G = 20).
+DEFAULTS = {"resolution": 64, "configs": 20, "test_views": 30}
+
+
+@dataclass
+class Mover:
+    """One drawn object before it becomes a spec entry: parts in its frame (base at z = 0),
+    largest extent, and whether it stands on the floor."""
+
+    name: str
+    parts: list[dict[str, Any]]
+    size: float
+    on_floor: bool
+
+
+def split_of(seed: int) -> str:
+    """The split a seed belongs to (``development``, ``held-out`` or ``unassigned``)."""
+    return next((name for name, seeds in SPLITS.items() if seed in seeds), "unassigned")
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from ``A:B`` (A to B-1), ``A`` or a comma-separated list of those; ``ValueError`` names the problem."""
+    seeds: list[int] = []
+    for item in text.split(","):
+        item = item.strip()
+        try:
+            if ":" in item:
+                a, b = (int(x) for x in item.split(":"))
+                if b <= a:
+                    raise ValueError
+                seeds.extend(range(a, b))
+            else:
+                seeds.append(int(item))
+        except ValueError:
+            raise ValueError(f"bad seed range {item!r} (expected A:B with A < B, or an integer)") from None
+    if any(s < 0 for s in seeds):
+        raise ValueError(f"seeds must be >= 0, got {text!r}")
+    return seeds
+
+
+# ------------------------------------------------------------------------------------------------
+# Shapes. Each returns parts (spec dicts) of an object of extent about 1, base near z = 0; the
+# caller normalises the base to z = 0 and the largest extent to the mover's size.
+# ------------------------------------------------------------------------------------------------
+
+
+def _u(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(rng.uniform(lo, hi))
+
+
+def _block(rng: np.random.Generator) -> list[dict]:
+    size = [_u(rng, 0.3, 1.0), _u(rng, 0.3, 1.0), _u(rng, 0.3, 1.0)]
+    if rng.random() < 0.4:  # a thin plate
+        size[int(rng.integers(3))] = _u(rng, 0.04, 0.1)
+    return [{"type": "box", "size": size, "location": [0, 0, size[2] / 2]}]
+
+
+def _ball(rng: np.random.Generator) -> list[dict]:
+    return [{"type": "sphere", "radius": 0.5, "location": [0, 0, 0.5]}]
+
+
+def _can(rng: np.random.Generator) -> list[dict]:
+    r, h = (_u(rng, 0.03, 0.07), 1.0) if rng.random() < 0.4 else (_u(rng, 0.2, 0.5), _u(rng, 0.4, 1.0))  # a thin rod or a can
+    return [{"type": "cylinder", "radius": r, "height": h, "location": [0, 0, h / 2]}]
+
+
+def _cone(rng: np.random.Generator) -> list[dict]:
+    r, h = _u(rng, 0.25, 0.5), _u(rng, 0.5, 1.0)
+    return [{"type": "cone", "radius": r, "height": h, "location": [0, 0, h / 2]}]
+
+
+def _ring(rng: np.random.Generator) -> list[dict]:
+    R = 0.4
+    r = R * _u(rng, 0.12, 0.45)
+    standing = rng.random() < 0.5  # a hoop standing on its rim, or a ring lying flat
+    return [{"type": "torus", "major_radius": R, "minor_radius": r,
+             "location": [0, 0, R + r if standing else r], "rotation": [90, 0, 0] if standing else [0, 0, 0]}]
+
+
+def _cup(rng: np.random.Generator) -> list[dict]:
+    r, h, wall = _u(rng, 0.25, 0.45), _u(rng, 0.4, 1.0), _u(rng, 0.03, 0.08)
+    flare = _u(rng, 1.0, 1.3)
+    profile = [[0, 0], [r, 0], [r * flare, h], [r * flare - wall, h], [r - wall, wall], [0, wall]]
+    return [{"type": "lathe", "profile": profile}]
+
+
+def _vase(rng: np.random.Generator) -> list[dict]:
+    r0, r1, r2, h = _u(rng, 0.15, 0.3), _u(rng, 0.3, 0.5), _u(rng, 0.08, 0.2), _u(rng, 0.6, 1.0)
+    profile = [[0, 0], [r0, 0], [r1, 0.4 * h], [r2, 0.85 * h], [r2 * 1.3, h], [0, h]]
+    return [{"type": "lathe", "profile": profile}]
+
+
+def _washer(rng: np.random.Generator) -> list[dict]:
+    ro, t = 0.5, _u(rng, 0.05, 0.25)
+    ri = ro * _u(rng, 0.3, 0.7)
+    return [{"type": "lathe", "profile": [[ri, 0], [ro, 0], [ro, t], [ri, t]]}]
+
+
+def _table(rng: np.random.Generator) -> list[dict]:
+    w, d, h, top, leg = _u(rng, 0.6, 1.0), _u(rng, 0.4, 0.8), _u(rng, 0.4, 0.8), _u(rng, 0.03, 0.07), _u(rng, 0.02, 0.05)
+    parts = [{"type": "box", "size": [w, d, top], "location": [0, 0, h - top / 2]}]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            parts.append({"type": "cylinder", "radius": leg, "height": h - top,
+                          "location": [sx * (w / 2 - 2 * leg), sy * (d / 2 - 2 * leg), (h - top) / 2]})
+    return parts
+
+
+def _arch(rng: np.random.Generator) -> list[dict]:
+    w, h, t, d = _u(rng, 0.5, 1.0), _u(rng, 0.5, 1.0), _u(rng, 0.06, 0.15), _u(rng, 0.1, 0.3)
+    return [{"type": "box", "size": [t, d, h], "location": [-(w - t) / 2, 0, h / 2]},
+            {"type": "box", "size": [t, d, h], "location": [(w - t) / 2, 0, h / 2]},
+            {"type": "box", "size": [w, d, t], "location": [0, 0, h + t / 2]}]
+
+
+def _lamp(rng: np.random.Generator) -> list[dict]:
+    rb, tb, rod, h, shade = _u(rng, 0.15, 0.3), _u(rng, 0.03, 0.06), _u(rng, 0.015, 0.03), _u(rng, 0.5, 0.9), _u(rng, 0.15, 0.3)
+    return [{"type": "cylinder", "radius": rb, "height": tb, "location": [0, 0, tb / 2]},
+            {"type": "cylinder", "radius": rod, "height": h, "location": [0, 0, tb + h / 2]},
+            {"type": "cone", "radius": shade, "height": shade, "location": [0, 0, tb + h]}]
+
+
+def _l_shape(rng: np.random.Generator) -> list[dict]:
+    a, b, t, d = _u(rng, 0.5, 1.0), _u(rng, 0.4, 0.9), _u(rng, 0.1, 0.25), _u(rng, 0.2, 0.6)
+    return [{"type": "box", "size": [a, d, t], "location": [a / 2, 0, t / 2]},
+            {"type": "box", "size": [t, d, b], "location": [t / 2, 0, b / 2]}]
+
+
+#: The vocabulary; names become the movers' names (with an index).
+SHAPES: dict[str, Callable[[np.random.Generator], list[dict]]] = {
+    "block": _block, "ball": _ball, "can": _can, "cone": _cone, "ring": _ring, "cup": _cup, "vase": _vase,
+    "washer": _washer, "table": _table, "arch": _arch, "lamp": _lamp, "l-shape": _l_shape,
+}
+
+
+def _scaled_part(p: dict, s: float, shift: np.ndarray) -> dict:
+    """Part dict ``p`` scaled by ``s`` about the object origin after translating by ``shift``."""
+    out = {k: v for k, v in p.items()}
+    out["location"] = [float(x) for x in (np.asarray(p.get("location", [0, 0, 0]), dtype=np.float64) + shift) * s]
+    for k in ("radius", "height", "major_radius", "minor_radius"):
+        if k in p:
+            out[k] = float(p[k] * s)
+    if "size" in p:
+        out["size"] = [float(x * s) for x in p["size"]]
+    if "profile" in p:
+        out["profile"] = [[float(r * s), float(z * s)] for r, z in p["profile"]]
+    return out
+
+
+def _normalised(parts: list[dict], size: float) -> list[dict]:
+    """Parts moved so that the tessellated object's base is at z = 0 and its footprint centred at
+    the origin, and scaled so that its largest extent is ``size`` (the meshes the renderer and the
+    room check use, so a floor mover touches the floor exactly)."""
+    def mesh_bounds(ps: list[dict]) -> np.ndarray:
+        meshes = [_part_mesh(p) for p in ps]
+        return np.array([np.min([m.bounds[0] for m in meshes], axis=0), np.max([m.bounds[1] for m in meshes], axis=0)])
+
+    lo, hi = mesh_bounds(parts)
+    shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+    out = [_scaled_part(p, size / float(np.max(hi - lo)), shift) for p in parts]
+    base = mesh_bounds(out)[0][2]  # tessellation rounding after the scale
+    for p in out:
+        p["location"][2] -= float(base)
+    return out
+
+
+def _colour_pair(rng: np.random.Generator) -> list[list[float]]:
+    """Two colours that differ in brightness, so every surface has texture to match; drawn
+    uniformly in display (sRGB) values and stored linear, as the spec's colours are."""
+    a = rng.uniform(0.05, 0.95, 3)
+    b = rng.uniform(0.05, 0.95, 3)
+    if abs(a.mean() - b.mean()) < 0.3:
+        b = np.clip(1.0 - a + rng.uniform(-0.1, 0.1, 3), 0.05, 0.95)
+    return [[round(float(x) ** 2.2, 4) for x in c] for c in (a, b)]
+
+
+def _texture(rng: np.random.Generator, scale: float) -> dict:
+    return {"kind": str(rng.choice(TEXTURE_KINDS)), "colors": _colour_pair(rng), "scale": round(scale, 3)}
+
+
+# ------------------------------------------------------------------------------------------------
+# The draw.
+# ------------------------------------------------------------------------------------------------
+
+
+def _rig(rng: np.random.Generator, protocol: str) -> dict:
+    centre, span = _u(rng, -25, 25), _u(rng, 40, 90)
+    rig: dict[str, Any] = {
+        "protocol": protocol, "times": 15, "fov": round(_u(rng, 50, 70), 2), "radius": round(_u(rng, 2.0, 3.0), 3),
+        "height": round(_u(rng, 0.8, 1.8), 3), "arc": [round(centre - span / 2, 2), round(centre + span / 2, 2)],
+        "target": [round(_u(rng, -0.4, 0.4), 3), round(_u(rng, 0.2, 0.9), 3), round(_u(rng, 0.3, 0.7), 3)],
+    }
+    if protocol == "orbit":
+        rig.update(views=15, test_views=DEFAULTS["test_views"])
+    elif protocol == "stereo":
+        span = _u(rng, 10, 30)  # the pair moves slowly, as in Oxford Multimotion
+        rig.update(arc=[round(centre - span / 2, 2), round(centre + span / 2, 2)], baseline=round(_u(rng, 0.1, 0.3), 3), views=2)
+    else:
+        rig.update(arc=[round(centre, 2), round(centre, 2)], grid=[2, 6], views=12, spacing=round(_u(rng, 0.15, 0.3), 3))
+    return rig
+
+
+def _mid_camera(rig: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Eye and unit viewing direction of the camera at the middle of the arc."""
+    a = math.radians((rig["arc"][0] + rig["arc"][1]) / 2)
+    target = np.asarray(rig["target"], dtype=np.float64)
+    eye = target + rig["radius"] * np.array([math.sin(a), -math.cos(a), 0.0])
+    eye[2] = rig["height"]
+    return eye, (target - eye) / np.linalg.norm(target - eye)
+
+
+def _view_point(rng: np.random.Generator, eye: np.ndarray, forward: np.ndarray, fov: float, depth: float) -> np.ndarray:
+    """A world point at ``depth`` along a ray through the central part of the mid camera's image."""
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    half = math.tan(math.radians(fov) / 2)
+    x, y = _u(rng, -0.6, 0.6) * half, _u(rng, -0.5, 0.5) * half
+    ray = forward + x * right + y * up
+    return eye + depth * ray / np.linalg.norm(ray)
+
+
+def _motion(rng: np.random.Generator, start: np.ndarray, end: np.ndarray, on_floor: bool) -> list[dict]:
+    if on_floor:
+        r0 = _u(rng, -180, 180)
+        rots = [[0, 0, r0], [0, 0, r0 + _u(rng, -120, 120)]]
+    else:
+        r0 = rng.uniform(-180, 180, 3)
+        rots = [list(r0), list(r0 + rng.uniform(-90, 90, 3))]
+    keys = [{"t": 0.0, "location": start, "rotation": rots[0]}, {"t": 1.0, "location": end, "rotation": rots[1]}]
+    if rng.random() < 0.5:  # a bend in the path
+        mid = (start + end) / 2 + rng.uniform(-0.15, 0.15, 3) * np.array([1, 1, 0 if on_floor else 1])
+        keys.insert(1, {"t": round(_u(rng, 0.3, 0.7), 3), "location": mid, "rotation": list((np.asarray(rots[0]) + rots[1]) / 2)})
+    return [{"t": k["t"], "location": [round(float(x), 4) for x in k["location"]],
+             "rotation": [round(float(x), 2) for x in k["rotation"]]} for k in keys]
+
+
+def _sphere(parts: list[dict]) -> tuple[np.ndarray, float]:
+    """Bounding sphere (centre in the object frame, radius) of the tessellated parts."""
+    verts = np.concatenate([_part_mesh(p).vertices for p in parts])
+    c = (verts.min(axis=0) + verts.max(axis=0)) / 2
+    return c, float(np.linalg.norm(verts - c, axis=1).max())
+
+
+def _part_mesh(p: dict):
+    return part_mesh(Part(p["type"], {k: p[k] for k in p if k not in ("type", "location", "rotation")},
+                          p.get("location", [0, 0, 0]), p.get("rotation", [0, 0, 0])))
+
+
+def _centres(motion: list[dict], centre: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """``(T, 3)`` world positions of an object-frame point under keyframed ``motion``."""
+    poses = interpolate_poses([Keyframe(k["t"], k["location"], k["rotation"]) for k in motion], times)
+    return poses[:, :3, :3] @ centre + poses[:, :3, 3]
+
+
+def _mover(rng: np.random.Generator, i: int, on_floor: bool, rig: dict, mids: list[np.ndarray]) -> tuple[dict, np.ndarray]:
+    """One mover (spec dict) and its mid-path centre: a shape, a size, a path in view (sometimes
+    across the line of sight of an earlier mover at ``mids``) and a texture."""
+    eye, forward = _mid_camera(rig)
+    shape = str(rng.choice(list(SHAPES)))
+    size = float(math.exp(_u(rng, math.log(SIZE_RANGE[0]), math.log(SIZE_RANGE[1]))))
+    parts = _normalised(SHAPES[shape](rng), size)
+    depth = _u(rng, max(0.8, 1.5 * size + 0.5), max(1.0, min(4.0, 5.5 * size + 0.6)))
+    if mids and rng.random() < 0.5:  # across the line of sight of an earlier mover, in front or behind
+        other = mids[int(rng.integers(len(mids)))]
+        mid = eye + (other - eye) * (_u(rng, 0.55, 0.75) if rng.random() < 0.5 else _u(rng, 1.3, 1.6))
+    else:
+        mid = _view_point(rng, eye, forward, rig["fov"], depth)
+    side = np.cross(mid - eye, [0.0, 0.0, 1.0])
+    side /= max(np.linalg.norm(side), 1e-9)
+    travel = side * _u(rng, 0.3, 1.0) * max(size, 0.5) * (1 if rng.random() < 0.5 else -1)
+    if not on_floor:
+        travel = travel + np.array([0, 0, _u(rng, -0.3, 0.3)])
+    half = size / 2
+    if on_floor:
+        base = np.array([mid[0], mid[1], 0.0])
+    else:
+        base = np.array([mid[0], mid[1], float(np.clip(mid[2], 0.15 + half, 2.2)) - half])
+    scale = float(np.clip(_u(rng, 3, 8) * math.sqrt(0.8 / size), 2.0, 14.0))
+    obj = {"name": f"{shape}-{i}", "parts": parts, "texture": _texture(rng, scale),
+           "motion": _motion(rng, base - travel / 2, base + travel / 2, on_floor)}
+    return obj, base + [0, 0, half]
+
+
+def _in_view(path: np.ndarray, radius: float, cameras: list[np.ndarray], K: np.ndarray, width: int) -> int:
+    """How many of the training ``cameras`` (one per time of ``path (T, 3)``) see a sphere of
+    ``radius`` at the path's point as in view (module docstring: centre inside the image, in front,
+    at least ``MIN_EXTENT`` of the width across)."""
+    seen = 0
+    for c2w, centre in zip(cameras, path):
+        (uv,), (z,) = project(centre[None], K, c2w)
+        seen += bool(z > 0 and 0 <= uv[0] <= width and 0 <= uv[1] <= width and 2 * radius * K[0, 0] / z >= MIN_EXTENT * width)
+    return seen
+
+
+def _draw(rng: np.random.Generator, seed: int, protocol: str, n: int) -> dict:
+    """One candidate spec (plain data) with ``n`` movers, before the checks.
+
+    Each mover is redrawn (up to ``MOVER_TRIES`` times) until its swept bounding sphere keeps clear
+    of the movers already placed, of every camera centre and of the room's walls and ceiling:
+    without this, scenes of six movers almost never pass the exact checks."""
+    rig = _rig(rng, protocol)
+    rig_spec = RigSpec(**rig)
+    times = np.linspace(0.0, 1.0, rig_spec.times)
+    cams = [rig_cameras(rig_spec, t) for t in range(rig_spec.times)]
+    eyes = np.concatenate([c[:, :3, 3] for c in cams])
+    train = [cams[t][rig_spec.train_view(t)] for t in range(rig_spec.times)]
+    K = intrinsics_from_fov(rig_spec.fov, 64, 64)
+    reach = np.abs(eyes[:, :2]).max(axis=0) + 0.6  # the room holds every camera with a margin
+    room_size = np.array([max(_u(rng, 5.5, 8), 2 * reach[0]), max(_u(rng, 5.5, 8), 2 * reach[1]), _u(rng, 2.6, 3.4)])
+    objects: list[dict] = []
+    mids: list[np.ndarray] = []
+    swept: list[tuple[np.ndarray, float]] = []
+    floor_movers = set(np.flatnonzero(rng.random(n) < 0.5)) or {int(rng.integers(n))}
+    for i in range(n):
+        for _ in range(MOVER_TRIES):
+            obj, mid = _mover(rng, i, i in floor_movers, rig, mids)
+            c, r = _sphere(obj["parts"])
+            path = _centres(obj["motion"], c, times)
+            clear = (all(np.linalg.norm(path - p, axis=1).min() > r + q + 0.01 for p, q in swept)
+                     and np.linalg.norm(eyes[:, None] - path[None], axis=2).min() > r + 0.05
+                     and np.all(np.abs(path[:, :2]) + r < room_size[:2] / 2 - 0.05) and np.all(path[:, 2] + r < room_size[2])
+                     and _in_view(path, r, train, K, 64) >= MIN_VISIBLE_SHARE * len(train))
+            if clear:
+                break
+        objects.append(obj)
+        mids.append(mid)
+        swept.append((path, r))
+    room = {"size": [round(float(x), 3) for x in room_size],
+            "floor": _texture(rng, _u(rng, 1.5, 3.0)), "walls": _texture(rng, _u(rng, 1.2, 2.5))}
+    return {"name": f"random-{seed}", "room": room, "objects": objects, "rig": rig, "samples": 1,
+            "configs": DEFAULTS["configs"], "resolution": [DEFAULTS["resolution"]] * 2, "seed": seed}
+
+
+def _family_problem(spec: SceneSpec, on_floor: list[bool]) -> str | None:
+    """The family's own acceptance rules (module docstring); ``None`` when the draw passes."""
+    built = build_scene(spec)
+    scene = built.scene
+    K = scene.intrinsics.matrix()
+    frames = scene.train_frames
+    discs: list[list[tuple[np.ndarray, float] | None]] = []
+    cameras = [f.camera_to_world for f in frames]
+    for k in range(1, len(built.objects)):
+        geom = built.objects[k]
+        c_obj, r_obj = geom.bounding_sphere
+        path = np.stack([scene.objects[k].poses[f.time_index][:3, :3] @ c_obj + scene.objects[k].poses[f.time_index][:3, 3] for f in frames])
+        seen = _in_view(path, r_obj, cameras, K, scene.width)
+        if seen < MIN_VISIBLE_SHARE * len(frames):
+            return f"{geom.name} in view in {seen} of {len(frames)} training frames"
+        row = []
+        for f, centre in zip(frames, path):
+            (uv,), (z,) = project(centre[None], K, f.camera_to_world)
+            row.append((uv, r_obj * K[0, 0] / z) if z > 0 else None)
+        discs.append(row)
+    if not any(on_floor):
+        return "no mover on the floor"
+    for a in range(len(discs)):
+        for b in range(a + 1, len(discs)):
+            for da, db in zip(discs[a], discs[b]):
+                if da and db and np.linalg.norm(da[0] - db[0]) < 0.8 * (da[1] + db[1]):
+                    return None
+    return "no pair of movers passes in front of another"
+
+
+def random_spec(seed: int, protocol: str = "orbit", max_attempts: int = MAX_ATTEMPTS) -> SceneSpec:
+    """The family's scene for ``seed`` (deterministic), checked like any spec.
+
+    Raises:
+        SpecError: no draw of ``max_attempts`` passed the checks (names the seed and the last reason).
+    """
+    if protocol not in RIG_PROTOCOLS:
+        raise SpecError(f"--random: unknown protocol {protocol!r} (expected one of {', '.join(RIG_PROTOCOLS)})")
+    if seed < 0:
+        raise SpecError(f"--random: the seed must be >= 0, got {seed}")
+    reason = ""
+    # The number of movers comes from the seed alone: redrawing it too would favour the scenes
+    # with few movers, which pass the checks more often.
+    n = int(np.random.default_rng(seed).integers(MOVERS[0], MOVERS[1] + 1))
+    for attempt in range(max_attempts):
+        rng = np.random.default_rng([seed, attempt])
+        d = _draw(rng, seed, protocol, n)
+        on_floor = [all(abs(k["location"][2]) < 1e-12 for k in o["motion"]) for o in d["objects"]]
+        try:
+            spec = spec_from_dict(d, f"random seed {seed}")
+            check_authored_scene(build_scene(spec))
+        except SpecError as e:
+            reason = str(e).split(": ", 1)[-1]
+            continue
+        reason = _family_problem(spec, on_floor) or ""
+        if not reason:
+            return spec
+    raise SpecError(f"random seed {seed}: no plausible scene in {max_attempts} draws (last: {reason})")
