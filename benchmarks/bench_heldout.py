@@ -1,0 +1,222 @@
+"""OSN on scenes nobody tuned it on: K seeds of the procedural family, from SfM inputs and the oracle's.
+
+For each seed of the chosen split (``benchgen/scene/procedural.py``; report on ``held-out``, tune on
+``development``): the family's dataset at its default size (64 px, G = 20, 30 test views), then
+``osn demo`` on it exactly as a user runs it (``--spec`` of the dataset's own spec, SfM at the
+demo's resolution with ``--inputs-from colmap``, or ``--inputs-from oracle``; ``-n 1000``,
+``--max-views 30``), each source in its own work directory sharing the one dataset. Per run:
+valid-set IoU / precision / recall against the exact region, best of N minus the highest-score
+solution (dB, through the scorer), the mean scale error of the matches, training PSNR and time.
+Per source: mean ± std over seeds and the worst seed's IoU. Everything resumes (datasets and demo
+stages), so a killed run is rerun with the same command.
+
+Runs go in ``--jobs`` parallel processes (each with the machine's cores shared out) or, with
+``--executor ray``, as Ray tasks on a cluster with a shared file system (``--address``). Prints the
+command first, then one row per run as it finishes and the pooled table; writes ``--out`` (JSON,
+the layout of ``results_json.py``). Run:
+
+    .venv/bin/python benchmarks/bench_heldout.py --root /tmp/heldout --seeds 3 [--split held-out]
+        [--sources colmap,oracle] [--config configs/osn-paper.yaml --label paper] [--jobs 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+from results_json import table, write_results
+
+from benchutil import print_command
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = ("colmap", "oracle")
+#: Attempts of a run refused because its dataset is in use (see ``run_one``).
+RETRIES_IN_USE = 10
+
+
+def dataset_for(seed: int, root: Path, threads: int) -> Path:
+    """The family's dataset of ``seed`` under ``root/random-SEED/dataset`` (generated or resumed)."""
+    from benchgen.scene.procedural import random_spec
+    from benchgen.scene.spec import dump_spec
+
+    d = root / f"random-{seed}"
+    d.mkdir(parents=True, exist_ok=True)
+    spec = d / "spec.yaml"
+    if not spec.is_file():
+        spec.write_text(dump_spec(random_spec(seed)))
+    cmd = [sys.executable, "-m", "benchgen.cli", "generate", "--spec", str(spec), "--out", str(d / "dataset"), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(threads))
+    if proc.returncode != 0:
+        raise RuntimeError(f"seed {seed}: benchgen generate failed: {(proc.stderr.strip().splitlines() or ['?'])[-1]}")
+    return d / "dataset"
+
+
+def _dataset_or_error(seed: int, root: Path, threads: int) -> str | None:
+    try:
+        dataset_for(seed, root, threads)
+    except RuntimeError as e:
+        return str(e)
+    return None
+
+
+def _env(threads: int) -> dict[str, str]:
+    return {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+
+
+def run_one(seed: int, source: str, root: Path, config: str | None, label: str, n: int, max_views: int, threads: int) -> dict[str, Any]:
+    """``osn demo`` of one seed from one source on its dataset (already generated); its figures (or ``error``)."""
+    t0 = time.perf_counter()
+    dataset = root / f"random-{seed}" / "dataset"
+    work = root / f"random-{seed}" / f"{label}-{source}"
+    work.mkdir(parents=True, exist_ok=True)
+    link = work / "dataset"
+    if not link.exists():
+        link.symlink_to(dataset.resolve(), target_is_directory=True)
+    cmd = [sys.executable, "-m", "osn.cli", "demo", "--work", str(work), "--spec", str(dataset / "spec.yaml"),
+           "--inputs-from", source, "-n", str(n), "--max-views", str(max_views), "--workers", "1"]
+    if config:
+        cmd += ["--config", config]
+    for _ in range(RETRIES_IN_USE):
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(threads))
+        # The seed's other run may hold the shared dataset's lock for the seconds its generate and
+        # ground-truth stages take to find everything rendered: wait and resume.
+        if proc.returncode == 0 or "in use by" not in proc.stderr:
+            break
+        time.sleep(30)
+    (work / "bench.log").write_text(proc.stdout + proc.stderr)
+    if proc.returncode != 0:
+        return {"seed": seed, "source": source, "error": (proc.stderr.strip().splitlines() or ["?"])[-1],
+                "seconds": time.perf_counter() - t0}
+    return {"seed": seed, "source": source, **figures(work), "seconds": time.perf_counter() - t0}
+
+
+def figures(work: Path) -> dict[str, Any]:
+    """The figures of a finished demo work directory (its report and stage records)."""
+    m = json.loads((work / "report" / "metrics.json").read_text())
+    stages = json.loads((work / "stages.json").read_text())
+    best = next(k for k in m["table"] if k.startswith("best of"))
+    errors = [e for e in m.get("scale_error", []) if e is not None]
+    return {
+        "iou": m["valid_set"]["iou"], "precision": m["valid_set"]["precision"], "recall": m["valid_set"]["recall"],
+        "best_minus_highest_db": m["table"][best]["psnr"][0] - m["table"]["highest score"]["psnr"][0],
+        "best_psnr": m["table"][best]["psnr"][0], "highest_psnr": m["table"]["highest score"]["psnr"][0],
+        "scale_error": statistics.fmean(errors) if errors else None,
+        "train_psnr": stages["train"]["summary"]["psnr"], "train_seconds": stages["train"]["seconds"],
+        "stage_seconds": {k: round(r["seconds"]) for k, r in stages.items()},
+    }
+
+
+def _mean_std(xs: list[float], fmt: str) -> str:
+    if not xs:
+        return "-"
+    sd = statistics.stdev(xs) if len(xs) > 1 else 0.0
+    return f"{fmt.format(statistics.fmean(xs))} ± {fmt.format(sd)}"
+
+
+FIELDS = (("iou", "{:.3f}"), ("precision", "{:.3f}"), ("recall", "{:.3f}"), ("best_minus_highest_db", "{:+.2f}"),
+          ("scale_error", "{:.3f}"), ("train_psnr", "{:.2f}"), ("train_seconds", "{:.0f}"))
+HEADERS = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scale error of matches", "training PSNR",
+           "training time (s)"]
+
+
+def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
+    ok = [r for r in runs if "error" not in r]
+    per_seed = [[str(r["seed"]), r["source"], *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS)]
+                for r in sorted(ok, key=lambda r: (r["seed"], r["source"]))]
+    per_seed += [[str(r["seed"]), r["source"], f"failed: {r['error']}", *["-"] * (len(FIELDS) - 1)] for r in runs if "error" in r]
+    pooled = []
+    for source in SOURCES:
+        rs = [r for r in ok if r["source"] == source]
+        if rs:
+            pooled.append([label, source, str(len(rs)), *(_mean_std([r[k] for r in rs if r.get(k) is not None], fmt) for k, fmt in FIELDS),
+                           f"{min(r['iou'] for r in rs):.3f}"])
+    return {"heldout_pooled": table(["config", "inputs", "seeds", *HEADERS, "worst seed's IoU"], pooled),
+            "heldout_per_seed": table(["seed", "inputs", *HEADERS], per_seed)}
+
+
+def main() -> int:
+    from benchgen.scene.procedural import SPLITS, parse_seeds
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, required=True, help="working directory (datasets and runs; resumed)")
+    ap.add_argument("--split", choices=tuple(SPLITS), default="held-out", help="which split's seeds (default: held-out)")
+    ap.add_argument("--seeds", type=int, default=3, help="the first K seeds of the split (default: 3)")
+    ap.add_argument("--seed-list", default=None, help="explicit seeds instead (A:B or a list); must lie in --split")
+    ap.add_argument("--sources", default="colmap,oracle", help="inputs to train from (default: colmap,oracle)")
+    ap.add_argument("--config", default=None, help="YAML training config passed to osn demo (default: the CPU defaults)")
+    ap.add_argument("--label", default="default", help="name of the config in the table and the run directories")
+    ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
+    ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
+    ap.add_argument("--jobs", type=int, default=1, help="runs at once (local processes; cores shared out)")
+    ap.add_argument("--executor", choices=("local", "ray"), default="local", help="local processes or Ray tasks")
+    ap.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray instance)")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "heldout.json", help="results JSON")
+    args = ap.parse_args()
+    print_command()
+    split = SPLITS[args.split]
+    seeds = parse_seeds(args.seed_list) if args.seed_list else list(split)[: args.seeds]
+    if outside := [s for s in seeds if s not in split]:
+        ap.error(f"seeds {outside} are not in the {args.split} split")
+    sources = [s for s in args.sources.split(",") if s]
+    if bad := [s for s in sources if s not in SOURCES]:
+        ap.error(f"unknown source {bad[0]!r} (expected colmap or oracle)")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    threads = max(1, cores // max(1, args.jobs))
+    # Source-major, so that a seed's two runs rarely start together (they share its dataset).
+    jobs = [(seed, src) for src in sources for seed in seeds]
+    runs: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    job_args = lambda seed, src: (seed, src, args.root, args.config, args.label, args.n, args.max_views, threads)  # noqa: E731
+
+    def report(r: dict[str, Any]) -> None:
+        runs.append(r)
+        text = r.get("error") or " ".join(f"{k} {fmt.format(r[k])}" for k, fmt in FIELDS if r.get(k) is not None)
+        print(f"seed {r['seed']} {r['source']}: {text} ({r['seconds']:.0f} s)", flush=True)
+
+    failed: dict[int, str] = {}
+    if args.executor == "ray":
+        import ray
+
+        ray.init(address=args.address)
+        make = ray.remote(num_cpus=threads)(_dataset_or_error)
+        for seed, err in zip(seeds, ray.get([make.remote(s, args.root, threads) for s in seeds])):
+            if err:
+                failed[seed] = err
+        remote = ray.remote(num_cpus=threads)(run_one)
+        pending = [remote.remote(*job_args(s, src)) for s, src in jobs if s not in failed]
+        while pending:
+            done, pending = ray.wait(pending)
+            for ref in done:
+                report(ray.get(ref))
+    else:
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            for seed, err in zip(seeds, pool.map(lambda s: _dataset_or_error(s, args.root, threads), seeds)):
+                if err:
+                    failed[seed] = err
+            futures = [pool.submit(run_one, *job_args(s, src)) for s, src in jobs if s not in failed]
+            for f in as_completed(futures):
+                report(f.result())
+    for seed, err in failed.items():
+        for src in sources:
+            report({"seed": seed, "source": src, "error": err, "seconds": 0.0})
+    ts = tables(runs, args.label)
+    for name, t in ts.items():
+        print(f"\n{name}:\n| " + " | ".join(t["columns"]) + " |\n" + "\n".join("| " + " | ".join(r) + " |" for r in t["rows"]))
+    write_results(args.out, "heldout", "python " + " ".join(sys.argv), ts,
+                  {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config, "runs": runs,
+                   "wall_seconds": time.perf_counter() - t0, "jobs": args.jobs,
+                   "load_average_at_end": os.getloadavg()[0]}, ROOT)
+    print(f"wrote {args.out}")
+    return 1 if any("error" in r for r in runs) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
