@@ -75,7 +75,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from scenecore.cameras import invert_pose, pixel_rays, project
+from scenecore.cameras import pixel_rays, project
 
 #: A frame contradicts its masks when more than this share of the object's points miss there.
 FRAME_MISS = 0.5
