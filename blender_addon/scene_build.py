@@ -11,6 +11,7 @@ sampled configurations) is stored as ID properties, so a saved .blend works with
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import bpy
@@ -124,29 +125,156 @@ def _node_tree(mat: bpy.types.Material) -> bpy.types.NodeTree:
     return nt
 
 
-def volume_material(name: str) -> bpy.types.Material:
+def _math(nt: bpy.types.NodeTree, op: str, a: Any, b: Any = None) -> Any:
+    """A Math node ``op(a, b)``; ``a``/``b`` are sockets or numbers. Returns its output socket."""
+    node = nt.nodes.new("ShaderNodeMath")
+    node.operation = op
+    for i, v in enumerate((a, b)):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            node.inputs[i].default_value = float(v)
+        else:
+            nt.links.new(v, node.inputs[i])
+    return node.outputs[0]
+
+
+def _attribute(nt: bpy.types.NodeTree, name: str, kind: str = "GEOMETRY") -> bpy.types.Node:
+    node = nt.nodes.new("ShaderNodeAttribute")
+    node.attribute_type, node.attribute_name = kind, name
+    return node
+
+
+def _softplus(nt: bpy.types.NodeTree, x: Any) -> Any:
+    """``log(1 + exp(x))`` as ``max(x, 0) + log(1 + exp(-|x|))``: finite for any ``x``."""
+    tail = _math(nt, "LOGARITHM", _math(nt, "ADD", _math(nt, "EXPONENT", _math(nt, "MULTIPLY", _math(nt, "ABSOLUTE", x), -1.0)), 1.0), math.e)
+    return _math(nt, "ADD", _math(nt, "MAXIMUM", x, 0.0), tail)
+
+
+def _sigmoid_rgb(nt: bpy.types.NodeTree, v: Any) -> Any:
+    """Per-channel ``1 / (1 + exp(-v))`` of a vector socket; returns a colour socket."""
+    sep, comb = nt.nodes.new("ShaderNodeSeparateXYZ"), nt.nodes.new("ShaderNodeCombineColor")
+    nt.links.new(v, sep.inputs[0])
+    for i in range(3):
+        e = _math(nt, "EXPONENT", _math(nt, "MULTIPLY", sep.outputs[i], -1.0))
+        nt.links.new(_math(nt, "DIVIDE", 1.0, _math(nt, "ADD", e, 1.0)), comb.inputs[i])
+    return comb.outputs[0]
+
+
+def _inside_box(nt: bpy.types.NodeTree, bbox: np.ndarray) -> Any:
+    """1 inside the object-space box ``bbox (2, 3)``, 0 outside: the field is cut at its box,
+    while Blender's trilinear lookups fade each grid out over one voxel beyond its last node."""
+    lo, hi = np.asarray(bbox, dtype=np.float64)
+    tc = nt.nodes.new("ShaderNodeTexCoord")
+    rel = nt.nodes.new("ShaderNodeVectorMath")
+    rel.operation = "SUBTRACT"
+    nt.links.new(tc.outputs["Object"], rel.inputs[0])
+    rel.inputs[1].default_value = tuple((lo + hi) / 2.0)
+    dist = nt.nodes.new("ShaderNodeVectorMath")
+    dist.operation = "ABSOLUTE"
+    nt.links.new(rel.outputs[0], dist.inputs[0])
+    out = nt.nodes.new("ShaderNodeVectorMath")
+    out.operation = "SUBTRACT"
+    nt.links.new(dist.outputs[0], out.inputs[0])
+    out.inputs[1].default_value = tuple((hi - lo) / 2.0)
+    sep = nt.nodes.new("ShaderNodeSeparateXYZ")
+    nt.links.new(out.outputs[0], sep.inputs[0])
+    return _math(nt, "LESS_THAN", _math(nt, "MAXIMUM", _math(nt, "MAXIMUM", sep.outputs[0], sep.outputs[1]), sep.outputs[2]), 0.0)
+
+
+def plane_images(name: str, planes: np.ndarray) -> list[bpy.types.Image]:
+    """The colour planes ``(3, P, P, 3)`` as float images (``planes[i, v, u]`` at pixel column u,
+    row v from the bottom), non-colour data, packed into the .blend."""
+    images = []
+    P = planes.shape[1]
+    for i, axes in enumerate(core.PLANE_AXES):
+        img = bpy.data.images.new(f"{name} plane {'xyz'[axes[0]]}{'xyz'[axes[1]]}", P, P, alpha=True, float_buffer=True)
+        img.colorspace_settings.name = "Non-Color"
+        rgba = np.concatenate([planes[i], np.ones((P, P, 1))], axis=-1).astype(np.float32)
+        img.pixels.foreach_set(rgba.ravel())
+        img.pack()
+        images.append(img)
+    return images
+
+
+def _plane_colour(nt: bpy.types.NodeTree, images: list[bpy.types.Image], bbox: np.ndarray) -> Any:
+    """Sum of the colour planes' bilinear lookups at the shading point: texel j of a plane of
+    side P sits at box-normalised ``-1 + 2 j / (P - 1)`` (the field's corner-aligned lookups),
+    so object coordinate ``x`` maps to texture coordinate ``(x - lo) / (hi - lo) * (P - 1) / P +
+    0.5 / P`` (Blender's linear interpolation puts texel centres at ``(j + 0.5) / P``)."""
+    lo, hi = np.asarray(bbox, dtype=np.float64)
+    P = images[0].size[0]
+    scale = (P - 1) / (P * (hi - lo))
+    tc = nt.nodes.new("ShaderNodeTexCoord")
+    uvw = nt.nodes.new("ShaderNodeVectorMath")
+    uvw.operation = "MULTIPLY_ADD"
+    nt.links.new(tc.outputs["Object"], uvw.inputs[0])
+    uvw.inputs[1].default_value = tuple(scale)
+    uvw.inputs[2].default_value = tuple(0.5 / P - lo * scale)
+    sep = nt.nodes.new("ShaderNodeSeparateXYZ")
+    nt.links.new(uvw.outputs[0], sep.inputs[0])
+    total = None
+    for img, (a, b) in zip(images, core.PLANE_AXES):
+        uv = nt.nodes.new("ShaderNodeCombineXYZ")
+        nt.links.new(sep.outputs[a], uv.inputs[0])
+        nt.links.new(sep.outputs[b], uv.inputs[1])
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image, tex.interpolation, tex.extension = img, "Linear", "EXTEND"
+        nt.links.new(uv.outputs[0], tex.inputs["Vector"])
+        if total is None:
+            total = tex.outputs["Color"]
+            continue
+        add = nt.nodes.new("ShaderNodeVectorMath")
+        add.operation = "ADD"
+        nt.links.new(total, add.inputs[0])
+        nt.links.new(tex.outputs["Color"], add.inputs[1])
+        total = add.outputs[0]
+    return total
+
+
+def volume_material(name: str, obj: core.ExportObjectData | None = None, planes: list[bpy.types.Image] | None = None
+                    ) -> bpy.types.Material:
     """Emission-absorption (the NeRF rendering model): absorption ``sigma`` and emission ``sigma * c``.
 
-    ``sigma`` is the ``density`` grid times the object's ``osn_inv_scale``: the grid is per
-    object unit, and an object scaled by ``s`` is ``s`` times longer along every ray, so the
-    optical depth, and with it the training-camera image, stays unchanged.
+    With the object's field grids (``obj.field``), ``sigma`` and ``c`` are the learned field's:
+    ``softplus`` of the trilinear pre-activation density inside the box, ``sigmoid`` of the raw
+    colour plus its colour planes (``planes``, :func:`plane_images`), ``c`` display-referred as OSN composites it (the import sets the
+    Raw view transform so the render is not encoded again). Without them (an older export) the
+    node values ``density`` and linear ``color`` are used, ``color`` brought back to display values
+    by a 2.2 gamma. ``sigma`` is per object unit; the volume's density space is World and
+    ``sigma`` is multiplied by the object's ``osn_inv_scale``: an object scaled by ``s`` is ``s``
+    times longer along every ray, so the optical depth, and with it the training-camera image,
+    stays unchanged.
     """
     mat = bpy.data.materials.new(name)
     nt = _node_tree(mat)
     n, link = nt.nodes, nt.links.new
     out = n.new("ShaderNodeOutputMaterial")
-    dens, col, inv = (n.new("ShaderNodeAttribute") for _ in range(3))
-    dens.attribute_name, col.attribute_name = "density", "color"
-    inv.attribute_type, inv.attribute_name = "OBJECT", P_INV
-    sigma = n.new("ShaderNodeMath")
-    sigma.operation = "MULTIPLY"
-    link(dens.outputs["Fac"], sigma.inputs[0])
-    link(inv.outputs["Fac"], sigma.inputs[1])
+    inv = _attribute(nt, P_INV, "OBJECT")
+    f = obj.field if obj is not None else None
+    if f is not None:
+        raw = _attribute(nt, f.density_grid).outputs["Fac"]
+        sigma = _math(nt, "MULTIPLY", _softplus(nt, _math(nt, "ADD", raw, f.density_offset)), _inside_box(nt, obj.bbox))
+        colour_raw = _attribute(nt, f.color_grid).outputs["Vector"]
+        if planes:
+            add = n.new("ShaderNodeVectorMath")
+            add.operation = "ADD"
+            link(colour_raw, add.inputs[0])
+            link(_plane_colour(nt, planes, obj.bbox), add.inputs[1])
+            colour_raw = add.outputs[0]
+        colour = _sigmoid_rgb(nt, colour_raw)
+    else:
+        sigma = _attribute(nt, "density").outputs["Fac"]
+        gamma = n.new("ShaderNodeGamma")
+        link(_attribute(nt, "color").outputs["Color"], gamma.inputs["Color"])
+        gamma.inputs["Gamma"].default_value = 1.0 / 2.2
+        colour = gamma.outputs[0]
+    sigma = _math(nt, "MULTIPLY", sigma, inv.outputs["Fac"])
     absorb, emit, add = n.new("ShaderNodeVolumeAbsorption"), n.new("ShaderNodeEmission"), n.new("ShaderNodeAddShader")
     absorb.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)  # Cycles absorbs (1 - colour)
-    link(sigma.outputs[0], absorb.inputs["Density"])
-    link(col.outputs["Color"], emit.inputs["Color"])
-    link(sigma.outputs[0], emit.inputs["Strength"])
+    link(sigma, absorb.inputs["Density"])
+    link(colour, emit.inputs["Color"])
+    link(sigma, emit.inputs["Strength"])
     link(absorb.outputs[0], add.inputs[0])
     link(emit.outputs[0], add.inputs[1])
     link(add.outputs[0], out.inputs["Volume"])
@@ -198,9 +326,10 @@ def _mesh_data(name: str, mesh: dict[str, np.ndarray]) -> bpy.types.Mesh:
     me.polygons.add(len(f))
     me.polygons.foreach_set("loop_start", np.arange(0, 3 * len(f), 3, dtype=np.int32))
     me.update(calc_edges=True)
-    attr = me.color_attributes.new("Col", "BYTE_COLOR", "POINT")
-    # PLY colours are sRGB bytes; "color_srgb" lets Blender linearise them for shading.
-    attr.data.foreach_set("color_srgb", (mesh["colors"].astype(np.float32) / 255.0).ravel())
+    attr = me.color_attributes.new("Col", "FLOAT_COLOR", "POINT")
+    # PLY colours are display (sRGB) bytes; they are emitted as they are, like the volumes'
+    # colours, and the Raw view transform shows them unchanged (import_export).
+    attr.data.foreach_set("color", (mesh["colors"].astype(np.float32) / 255.0).ravel())
     me.validate()
     return me
 
@@ -220,12 +349,13 @@ def _camera_data(name: str, data: core.ExportData) -> bpy.types.Camera:
     return cam
 
 
-def _check_volume(vol: bpy.types.Volume, path: str) -> None:
+def _check_volume(vol: bpy.types.Volume, path: str, field: core.FieldGrids | None = None) -> None:
     if not vol.grids.load():
         raise core.ExportFormatError(f"{path}: Blender cannot load the volume ({vol.grids.error_message or 'unknown error'})")
     names = {g.name for g in vol.grids}
-    if not {"density", "color"} <= names:
-        raise core.ExportFormatError(f"{path}: volume lacks grids 'density' and 'color' (has {sorted(names)})")
+    need = {"density", "color"} | (set() if field is None else {field.density_grid, field.color_grid})
+    if not need <= names:
+        raise core.ExportFormatError(f"{path}: volume lacks grids {sorted(need - names)} (has {sorted(names)})")
 
 
 def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection:
@@ -252,7 +382,6 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
         samples = data.samples if data.samples is not None else np.zeros((0, len(data.objects)))
         coll[P_SAMPLES] = samples.ravel().tolist()
         frames_all = np.arange(data.num_frames) + 1.0
-        vmat = made.add(volume_material("OSN volume"))
         for i, o in enumerate(data.objects):
             empty = made.add(bpy.data.objects.new(o.name, None))
             empty.empty_display_type = "CUBE"
@@ -270,8 +399,14 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
                           description=f"Actual scale of {o.name} (learned valid interval [{lo:.4g}, {hi:.4g}])")
             vol = made.add(bpy.data.volumes.new(f"{o.name} volume"))
             vol.filepath = o.volume_path
-            _check_volume(vol, o.volume_path)
-            vol.materials.append(vmat)
+            _check_volume(vol, o.volume_path, o.field)
+            # Density per world unit (osn_inv_scale compensates the object's scale); full float
+            # precision: the pre-activation density goes through an exponential.
+            vol.render.space, vol.render.precision = "WORLD", "FULL"
+            planes = None
+            if o.field is not None and o.field.planes is not None:
+                planes = [made.add(img) for img in plane_images(f"OSN {o.name}", o.field.planes)]
+            vol.materials.append(made.add(volume_material(f"OSN {o.name} volume", o, planes)))
             vobj = made.add(bpy.data.objects.new(f"{o.name} volume", vol))
             vobj[P_INV] = 1.0
             parts = [vobj]
@@ -301,6 +436,21 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
     scene.camera = cam_objs[0]
     scene.render.resolution_x, scene.render.resolution_y = data.width, data.height
     scene.render.resolution_percentage = 100
+    # The learned colours are display values composited as they are (as OSN renders): shown
+    # unchanged, not treated as scene-linear light and encoded again.
+    scene.view_settings.view_transform, scene.view_settings.look = "Raw", "None"
+    scene.view_settings.exposure, scene.view_settings.gamma = 0.0, 1.0
+    cycles = getattr(scene, "cycles", None)
+    if cycles is not None:
+        # Ray marching integrates emission-absorption with little noise (null scattering, the
+        # default, needs many times the samples), and pixel-centre rays are what OSN renders
+        # (the default 1.5 px filter blurs a low-resolution view).
+        if hasattr(cycles, "volume_biased"):
+            cycles.volume_biased = True
+        # Steps of a quarter voxel: a density that rises within a voxel (a surface) is missed
+        # or smeared by steps of a whole one.
+        cycles.volume_step_rate = 0.25
+        cycles.filter_width = 0.01
     scene.frame_start, scene.frame_end = 1, data.num_frames
     scene.osn_collection = coll
     return coll

@@ -10,7 +10,8 @@ Export directory (format ``osn-export`` version 1, see docs/export-and-addon.md)
     osn_export.json          manifest: conventions, cameras, objects, files with sizes and sha256
     arrays.npz               poses, cameras, sampled configurations
     scale_net.npz            W0, b0, W1, b1, ... (present when the scene has a scale network)
-    objects/<id>.vdb         grids "density" (float) and "color" (vec3, linear RGB)
+    objects/<id>.vdb         grids "density" (float) and "color" (vec3, linear RGB); with the
+                             object's "field" entry also the field's own grids (below)
     objects/<id>.ply         marching-cubes mesh, binary little-endian, sRGB vertex colours
 
 Conventions:
@@ -19,6 +20,11 @@ Conventions:
 * ``object_to_scene`` of object k at its frames, at ``sbar_k = 1``. A configuration with actual
   scales ``sbar`` places k at ``scale_about(c_t, sbar_k) @ object_to_scene_k[t]`` where ``c_t``
   is the training camera centre: the training video is unchanged, novel views are not.
+* An object's optional ``field`` entry names the learned field's parameters in its volume:
+  ``density = softplus(density_raw + offset)`` inside the bbox (0 outside) and display colour
+  ``sigmoid(color_raw + planes)``, each grid trilinear between its nodes. Rendered emission-
+  absorption with display colours composited as they are (no linearisation), this is the field
+  OSN renders; ``density`` and ``color`` are its values at the nodes only.
 * Eq. 1: a normalised scale ``s`` in [0, 1) maps to ``sbar = lo * (1 - s) + hi * s`` with the
   object's ``scale_range = [lo, hi]``. The scale network takes the normalised scales of the
   non-anchor objects, in manifest order, and returns a validity probability.
@@ -55,12 +61,20 @@ from .scale_space import (
 EXPORT_FORMAT = "osn-export"
 EXPORT_VERSION = 1
 MANIFEST_NAME = "osn_export.json"
+#: Grids of an object's ``field`` entry: pre-activation density, pre-sigmoid colour, colour planes.
+DENSITY_RAW_GRID = "density_raw"
+COLOR_RAW_GRID = "color_raw"
+#: The axes each of an object's three colour planes spans (``planes[i]`` spans ``PLANE_AXES[i]``).
+PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+#: Largest colour plane side a reader accepts.
+MAX_PLANE_SIZE = 4096
 
 __all__ = [
     "EXPORT_FORMAT", "EXPORT_VERSION", "MANIFEST_NAME", "ExportFormatError", "ExportObjectData", "ExportData",
     "scale_net_numpy", "denormalise", "normalise", "configured_poses", "blender_camera_matrices",
     "learned_intervals", "scale_scores", "sample_valid_configurations", "read_export", "read_ply", "sha256_file",
-    "opengl_from_opencv", "scale_about", "ACTIVATIONS", "names_manifest",
+    "opengl_from_opencv", "scale_about", "ACTIVATIONS", "names_manifest", "FieldGrids",
+    "DENSITY_RAW_GRID", "COLOR_RAW_GRID", "PLANE_AXES",
 ]
 
 
@@ -72,6 +86,23 @@ def blender_camera_matrices(camera_to_scene: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Reading an export
 # --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FieldGrids:
+    """An object's ``field`` entry: the grids of the learned field inside its volume file.
+
+    Attributes:
+        density_grid: pre-activation density grid; ``density = softplus(value + density_offset)``.
+        color_grid: pre-sigmoid colour grid; ``colour = sigmoid(value + sum of planes)``.
+        planes: ``(3, P, P, 3)`` pre-sigmoid colour planes (``planes[i, v, u]``, bilinear at
+            box-normalised ``-1 + 2 (u, v) / (P - 1)`` along :data:`PLANE_AXES` ``[i]``), or None.
+    """
+
+    density_grid: str
+    density_offset: float
+    color_grid: str
+    planes: np.ndarray | None = None
 
 
 @dataclass
@@ -90,6 +121,7 @@ class ExportObjectData:
     volume_path: str
     mesh_path: str | None
     mesh: dict[str, np.ndarray] | None = None
+    field: FieldGrids | None = None
 
 
 @dataclass
@@ -450,7 +482,35 @@ def _read_object(
         object_to_scene=_array(arrays, f"obj{oid}_object_to_scene", (len(frames), 4, 4), where),
         volume_path=named(_get(o, "volume", where), "volume"),
         mesh_path=named(mesh_rel, "mesh") if mesh_rel is not None else None,
+        field=_read_field(o.get("field"), where, named),
     )
+
+
+def _read_field(f: Any, where: str, named: Callable[[Any, str], str]) -> FieldGrids | None:
+    """An object's optional ``field`` entry (absent or null: an export made before it existed)."""
+    if f is None:
+        return None
+    where = f"{where}: field"
+    _dict(f, where, "entry")
+    dens, col = _dict(_get(f, "density", where), where, "density"), _dict(_get(f, "color", where), where, "color")
+    if _get(dens, "activation", where) != "softplus" or _get(col, "activation", where) != "sigmoid":
+        raise ExportFormatError(f"{where}: activations {_show(dens.get('activation'))} / {_show(col.get('activation'))}, "
+                                "this reader supports softplus density and sigmoid colour")
+    offset = _numbers(_get(dens, "offset", where), where, "density offset", ())
+    planes = None
+    entry = col.get("planes")
+    if entry is not None:
+        pw = f"{where}: color planes"
+        _dict(entry, pw, "entry")
+        P = _int(_get(entry, "size", pw), pw, "size", minimum=2)
+        if P > MAX_PLANE_SIZE:
+            raise ExportFormatError(f"{pw}: size {P} exceeds {MAX_PLANE_SIZE}")
+        if [list(x) for x in _list(_get(entry, "axes", pw), pw, "axes")] != [list(x) for x in PLANE_AXES]:
+            raise ExportFormatError(f"{pw}: axes {_show(entry.get('axes'))}, this reader supports {[list(x) for x in PLANE_AXES]}")
+        z = _load_npz(named(_get(entry, "file", pw), "colour planes file"), 4 * 9 * P * P + 4096)
+        planes = _array(z, _str(_get(entry, "array", pw), pw, "array"), (3, P, P, 3), pw)
+    return FieldGrids(_str(_get(dens, "grid", where), where, "density grid"), float(offset),
+                      _str(_get(col, "grid", where), where, "colour grid"), planes)
 
 
 def _read_objects(

@@ -23,6 +23,7 @@ from scenecore.cameras import invert_pose
 from scenecore.export_format import ExportFormatError
 from scenecore.lock import output_lock
 from osn.export.writer import ExportObject, ExportScene, ScaleNetwork, write_export
+from osn.model.fields import DENSITY_SHIFT, PLANE_AXES, DenseGridField
 from osn.model.placement import novel_to_training_camera
 from osn.model.run import TrainedRun, load_run
 from osn.model.scale_net import VALID_THRESHOLD
@@ -43,7 +44,9 @@ def export_scene_from_inputs(
 
     Args:
         inputs: the per-object inputs the run was trained on (poses, boxes, near/far).
-        grids: object id -> ``(density (D, H, W), colour (D, H, W, 3))`` sampled on its bbox.
+        grids: object id -> ``(density (D, H, W), colour (D, H, W, 3))`` sampled on its bbox,
+            optionally followed by the field's parameters ``(density_raw, colour_raw, planes)``
+            (:func:`field_parameters`).
         scale_network: the trained scale network (None for a single object).
         samples_sbar: optional ``(N, K)`` sampled valid configurations (actual scales).
         test_camera_to_world: optional ``(V, T, 4, 4)`` OpenCV test rig in dataset world
@@ -73,13 +76,15 @@ def export_scene_from_inputs(
     for i, o in enumerate(inputs.objects):
         if o.id not in grids:
             raise ExportFormatError(f"no grids for object {o.id} ({o.name})")
-        density, colour = grids[o.id]
+        density, colour, *params = grids[o.id]
+        density_raw, colour_raw, planes = params if params else (None, None, None)
         poses = np.stack([c2s[t] @ invert_pose(M) for t, M in zip(o.frames, o.cam_to_obj)])
         objects.append(
             ExportObject(
                 id=o.id, name=o.name, is_anchor=o.id == inputs.anchor, density=np.asarray(density, np.float32),
                 colour=np.asarray(colour, np.float32), bbox=np.asarray(o.bbox, float), scale_range=tuple(ranges[i]),
                 valid_interval=tuple(intervals[i]), frames=np.asarray(o.frames, np.int64), object_to_scene=poses,
+                density_raw=density_raw, colour_raw=colour_raw, colour_planes=planes,
             )
         )
     test = None
@@ -115,6 +120,44 @@ def field_grids(field_module: Any, resolution: int, chunk: int = 65536) -> tuple
                 col.append(field_module.color(p, dirs[:1].expand_as(p)))
     shape = (resolution,) * 3
     return torch.cat(sig).numpy().reshape(shape), torch.cat(col).clamp(0, 1).numpy().reshape(shape + (3,))
+
+
+def field_parameters(field_module: Any, resolution: int, colour: np.ndarray, chunk: int = 65536
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The field's own parameters on :func:`field_grids`' nodes: ``(density_raw (R, R, R), colour_raw
+    (R, R, R, 3), planes (3, P, P, 3) or None)`` (:class:`~osn.export.writer.ExportObject`).
+
+    ``density = softplus(density_raw)`` for every field (the activation is applied after the
+    trilinear lookup, so the nodes' densities alone interpolate to a different field). A dense
+    grid's colour is ``sigmoid(raw grid + colour planes)``: at its own resolution the raw nodes and
+    the planes reproduce it exactly. Other fields' colour (``colour``, :func:`field_grids`, the
+    view-averaged colour) is stored as its logit.
+    """
+    bbox = field_module.bbox.detach().cpu()
+    axes = [torch.linspace(float(bbox[0, a]), float(bbox[1, a]), resolution, dtype=torch.float64) for a in range(3)]
+    zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    pts = torch.stack([xx, yy, zz], -1).reshape(-1, 3).float()
+    dense = isinstance(field_module, DenseGridField)
+    raw, col = [], []
+    with torch.no_grad():
+        for p in pts.split(chunk):
+            xn = field_module.normalise(p)
+            # The fields' pre-activation parts (Field's contract: density = softplus(raw + shift)).
+            raw.append(field_module._density_raw(xn) + DENSITY_SHIFT)
+            if dense:
+                col.append(field_module._lookup(slice(1, 4), xn))
+    shape = (resolution,) * 3
+    density_raw = torch.cat(raw).numpy().reshape(shape)
+    if not dense:
+        c = np.clip(np.asarray(colour, np.float64), 1e-4, 1.0 - 1e-4)
+        return density_raw, np.log(c / (1.0 - c)).astype(np.float32), None
+    planes = None
+    if field_module.planes is not None:
+        if tuple(PLANE_AXES) != tuple(core.PLANE_AXES):
+            raise ExportFormatError(f"the field's colour planes span {PLANE_AXES}, the export format {core.PLANE_AXES}")
+        n = field_module.plane_size
+        planes = field_module.planes.detach().cpu().numpy().reshape(3, n, n, 3)  # [plane, v, u] (u fastest)
+    return density_raw, torch.cat(col).numpy().reshape(shape + (3,)), planes
 
 
 def export_layers_from_torch(modules: Sequence[Any]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -195,8 +238,10 @@ def _export_run_locked(run: Path, out_dir: str | Path, resolution: int | None, s
     inputs = trained.inputs
     grids = {}
     for o, f in zip(inputs.objects, trained.fields):
-        grids[o.id] = field_grids(f, resolution or f.resolution)
-        echo(f"export: sampled object {o.id} ({o.name}) at {resolution or f.resolution}^3")
+        r = resolution or f.resolution
+        density, colour = field_grids(f, r)
+        grids[o.id] = (density, colour, *field_parameters(f, r, colour))
+        echo(f"export: sampled object {o.id} ({o.name}) at {r}^3")
     # The learned valid set is the classifier's decision (score > 0.5), as in `osn sample` and the
     # valid-set IoU; training's stricter sampling threshold is a training setting.
     net = scale_network_from_torch(trained.net, VALID_THRESHOLD) if trained.net is not None else None

@@ -49,6 +49,15 @@ class ExportObject:
             ``scenecore/export_format.py``: a configuration scales it about the camera centre).
         mesh_level: density of the marching-cubes surface; None = ``ln 2 / voxel size`` capped
             at half the peak density.
+        density_raw: optional ``(D, H, W)`` pre-activation density on the same nodes:
+            ``density = softplus(density_raw)`` at the nodes, and between them the field
+            interpolates ``density_raw``, not ``density``; with it the export carries the field
+            itself (the manifest's ``field`` entry), not a resampling of its outputs.
+        colour_raw: optional ``(D, H, W, 3)`` pre-sigmoid colour on the same nodes (needs
+            ``density_raw``): the display colour is ``sigmoid(colour_raw + planes)``.
+        colour_planes: optional ``(3, P, P, 3)`` pre-sigmoid colour planes over the box, added to
+            ``colour_raw``: planes xy, xz, yz (``scenecore.export_format.PLANE_AXES``), ``[i, v, u]`` at box-normalised
+            ``(u, v) = -1 + 2 (col, row) / (P - 1)`` along the plane's first and second axis.
     """
 
     id: int
@@ -62,6 +71,9 @@ class ExportObject:
     frames: np.ndarray
     object_to_scene: np.ndarray
     mesh_level: float | None = None
+    density_raw: np.ndarray | None = None
+    colour_raw: np.ndarray | None = None
+    colour_planes: np.ndarray | None = None
 
     def voxel_size(self) -> np.ndarray:
         """``(3,)`` spacing of the samples along x, y, z in object units."""
@@ -138,6 +150,7 @@ class ExportScene:
                 raise ExportFormatError(f"{where}: density {o.density.shape} / colour {o.colour.shape} grids do not match")
             if not (np.all(np.isfinite(o.density)) and np.all(np.isfinite(o.colour))):
                 raise ExportFormatError(f"{where}: non-finite grid values")
+            _check_appearance(o, where)
             if not np.all(np.asarray(o.bbox)[1] > np.asarray(o.bbox)[0]):
                 raise ExportFormatError(f"{where}: empty bbox {np.asarray(o.bbox).tolist()}")
             if np.shape(o.object_to_scene) != (len(o.frames), 4, 4) or not len(o.frames):
@@ -155,6 +168,27 @@ class ExportScene:
 # --------------------------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------------------------
+
+
+def _check_appearance(o: ExportObject, where: str) -> None:
+    """Raise ``ExportFormatError`` when ``o``'s optional field grids do not fit its density grid."""
+    if o.density_raw is None:
+        if o.colour_raw is not None or o.colour_planes is not None:
+            raise ExportFormatError(f"{where}: colour_raw / colour_planes need density_raw")
+        return
+    shape = o.density.shape
+    if np.shape(o.density_raw) != shape or (o.colour_raw is not None and np.shape(o.colour_raw) != shape + (3,)):
+        raise ExportFormatError(f"{where}: density_raw {np.shape(o.density_raw)} / colour_raw {np.shape(o.colour_raw)} "
+                                f"do not match the density grid {shape}")
+    if o.colour_raw is None:
+        raise ExportFormatError(f"{where}: density_raw needs colour_raw")
+    p = o.colour_planes
+    if p is not None and (np.ndim(p) != 4 or np.shape(p)[0] != 3 or np.shape(p)[1] != np.shape(p)[2] or np.shape(p)[1] < 2
+                          or np.shape(p)[3] != 3):
+        raise ExportFormatError(f"{where}: colour_planes has shape {np.shape(p)}, expected (3, P, P, 3)")
+    for name, a in (("density_raw", o.density_raw), ("colour_raw", o.colour_raw), ("colour_planes", p)):
+        if a is not None and not np.all(np.isfinite(a)):
+            raise ExportFormatError(f"{where}: non-finite {name} values")
 
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -195,9 +229,31 @@ def _write_vdb(path: Path, obj: ExportObject) -> None:
     col.copyFromArray(np.ascontiguousarray(_srgb_to_linear(obj.colour).transpose(2, 1, 0, 3), dtype=np.float32))
     col.name = "color"
     col.transform = vdb.createLinearTransform(M)
+    grids = [dens, col] + _field_grids(vdb, obj, M)
     with D.atomic_path(path, suffix=".vdb") as tmp:
-        vdb.write(str(tmp), grids=[dens, col])
-        _check_vdb(vdb, tmp, [dens, col])
+        vdb.write(str(tmp), grids=grids)
+        _check_vdb(vdb, tmp, grids)
+
+
+def density_offset(obj: ExportObject) -> float:
+    """What the ``density_raw`` grid is stored relative to: one below its minimum, so every voxel
+    holds at least 1 (Blender clips voxels under its volume clipping value as empty space)."""
+    return float(np.floor(np.min(obj.density_raw))) - 1.0 if obj.density_raw is not None else 0.0
+
+
+def _field_grids(vdb: Any, obj: ExportObject, M: list[list[float]]) -> list[Any]:
+    """The field's own grids (``ExportObject.density_raw`` and ``colour_raw``) as OpenVDB grids on
+    the node grid of ``density``. Its colour planes go to a separate ``.npz`` (:func:`_write_object`):
+    as 2D textures they cost Blender a lookup each, as VDB grids a much slower volume."""
+    if obj.density_raw is None:
+        return []
+    raw = vdb.FloatGrid()
+    raw.copyFromArray(np.ascontiguousarray((obj.density_raw - density_offset(obj)).transpose(2, 1, 0), dtype=np.float32))
+    raw.name, raw.transform = core.DENSITY_RAW_GRID, vdb.createLinearTransform(M)
+    col = vdb.Vec3SGrid()
+    col.copyFromArray(np.ascontiguousarray(obj.colour_raw.transpose(2, 1, 0, 3), dtype=np.float32))
+    col.name, col.transform = core.COLOR_RAW_GRID, vdb.createLinearTransform(M)
+    return [raw, col]
 
 
 def _check_vdb(vdb: Any, path: Path, grids: list[Any]) -> None:
@@ -300,6 +356,10 @@ def _write_object(tmp: Path, o: ExportObject) -> dict[str, Any]:
     """Write one object's volume (and mesh, unless empty) under ``tmp``; returns its manifest entry."""
     vol_rel = f"objects/{o.id}.vdb"
     _write_vdb(tmp / vol_rel, o)
+    planes_rel = None
+    if o.colour_planes is not None:
+        planes_rel = f"objects/{o.id}_planes.npz"
+        D.atomic_write_bytes(tmp / planes_rel, _npz_bytes({"planes": np.asarray(o.colour_planes, np.float32)}))
     mesh = object_mesh(o)
     mesh_rel = None
     if mesh is not None:
@@ -317,6 +377,20 @@ def _write_object(tmp: Path, o: ExportObject) -> dict[str, Any]:
         "mesh": mesh_rel,
         "mesh_level": o.surface_level(),
         "mesh_faces": 0 if mesh is None else int(len(mesh[1])),
+        "field": _field_entry(o, planes_rel),
+    }
+
+
+def _field_entry(o: ExportObject, planes_rel: str | None) -> dict[str, Any] | None:
+    """The manifest's ``field`` entry of an object (None when the export has no field grids)."""
+    if o.density_raw is None:
+        return None
+    return {
+        "density": {"grid": core.DENSITY_RAW_GRID, "offset": density_offset(o), "activation": "softplus"},
+        "color": {"grid": core.COLOR_RAW_GRID, "activation": "sigmoid",
+                  "planes": None if planes_rel is None else {"file": planes_rel, "array": "planes",
+                                                             "size": int(o.colour_planes.shape[1]), "axes": [list(x) for x in core.PLANE_AXES]}},
+        "outside_bbox": "zero density",
     }
 
 
@@ -354,6 +428,9 @@ def _manifest(scene: ExportScene, objects: list[dict], net: dict | None, files: 
             "normalised_scale": "sbar = scale_range[0] * (1 - s) + scale_range[1] * s (Eq. 1)",
             "grid": "density[d, h, w] at bbox_min + (w, h, d) * voxel, voxel = (bbox_max - bbox_min) / (W-1, H-1, D-1)",
             "volume": "OpenVDB grids 'density' (per object unit) and 'color' (linear RGB), index [x, y, z]",
+            "field": "object.field: density = softplus(grid + offset) inside bbox, 0 outside; display colour = "
+                     "sigmoid(color grid + planes), trilinear between nodes; planes[i, v, u] bilinear at box-normalised "
+                     "-1 + 2 (u, v) / (P - 1) along axes[i] (the learned field itself)",
             "mesh": "binary PLY in object coordinates, uchar sRGB vertex colours",
             "blender_frame": "frame = 1 + time index",
         },
