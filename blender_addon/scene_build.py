@@ -93,9 +93,10 @@ def key_matrices(obj: bpy.types.Object, frames: np.ndarray, matrices: np.ndarray
             fc.update()
 
 
-def key_presence(obj: bpy.types.Object, num_frames: int, present: np.ndarray, made: _Created | None = None) -> None:
-    """Hide ``obj`` (viewport and render, constant keys) at the Blender frames where its object
-    has no pose: it left the training view then, so the export knows nowhere to put it, and
+def key_presence(obj: bpy.types.Object, num_frames: int, present: np.ndarray, made: _Created | None = None,
+                 paths: tuple[str, ...] = ("hide_viewport", "hide_render")) -> None:
+    """Hide ``obj`` (``paths``: viewport and render, constant keys) at the Blender frames where its
+    object has no pose: it left the training view then, so the export knows nowhere to put it, and
     holding its last pose would show it where it never was. ``present`` holds 0-based time indices."""
     hidden = np.ones(num_frames)
     hidden[np.asarray(present, dtype=np.int64)] = 0.0
@@ -103,7 +104,7 @@ def key_presence(obj: bpy.types.Object, num_frames: int, present: np.ndarray, ma
     f = np.arange(num_frames, dtype=np.float64) + 1.0
     co = np.empty(2 * num_frames)
     co[0::2], co[1::2] = f, hidden
-    for path in ("hide_viewport", "hide_render"):
+    for path in paths:
         fc = fcurves.find(path) or fcurves.new(path)
         fc.keyframe_points.clear()
         fc.keyframe_points.add(num_frames)
@@ -417,8 +418,12 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
             for part in parts:
                 coll.objects.link(part)
                 part.parent = empty
+                # The mesh is a viewport preview: renders show the volume, the learned field
+                # (the mesh renders far from OSN's images, docs/export-and-addon.md).
+                is_mesh = part.type == "MESH"
+                part.hide_render = is_mesh
                 if len(o.frames) < data.num_frames:
-                    key_presence(part, data.num_frames, o.frames, made)
+                    key_presence(part, data.num_frames, o.frames, made, ("hide_viewport",) if is_mesh else ("hide_viewport", "hide_render"))
             _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)  # keys the poses at that scale
         cams = [("OSN training camera", data.camera_to_scene)]
         if data.test_cameras is not None:

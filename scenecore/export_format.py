@@ -12,6 +12,7 @@ Export directory (format ``osn-export`` version 1, see docs/export-and-addon.md)
     scale_net.npz            W0, b0, W1, b1, ... (present when the scene has a scale network)
     objects/<id>.vdb         grids "density" (float) and "color" (vec3, linear RGB); with the
                              object's "field" entry also the field's own grids (below)
+    objects/<id>_planes.npz  the field's colour planes (objects whose field has them)
     objects/<id>.ply         marching-cubes mesh, binary little-endian, sRGB vertex colours
 
 Conventions:
