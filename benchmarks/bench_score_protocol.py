@@ -1,24 +1,30 @@
-"""``benchgen score`` at a protocol's full size: today's path against stored masks, in one process.
+"""``benchgen score`` at a protocol's full size: the path before against today's, in one process.
 
 On one dataset and one prediction directory, one after the other in this process:
 
-* ``on the fly``: today's path before the masks were stored: the ground truth's co-visibility
-  masks computed from its depth and ids (what a dataset written before
+* ``on the fly`` (only with ``--on-the-fly``): the path before the masks were stored: the ground
+  truth's co-visibility masks computed from its depth and ids (what a dataset written before
   ``configs/GGG/covisibility.npz`` existed still gets), candidates scored in float64 with torch's
   own thread count beside the reading workers (``bestofn.EXACT_FLOAT32`` and
-  ``bestofn.THREADS_BESIDE_WORKERS`` False);
-* ``stored``: the masks read from the dataset, 8-bit candidates scored in exact float32 blocks,
-  the products on the cores the workers leave;
-* ``benchgen score``: the command itself on the same inputs (stored masks; it also hashes every
-  file it reads for the report's provenance and checks the dataset's verification).
+  ``bestofn.THREADS_BESIDE_WORKERS`` False), and everything ``before`` does;
+* ``before``: stored masks and exact float32 products, but every candidate file decoded and
+  checked in the pass (``bestofn.COLOUR_ONLY`` False), the ground truth read through the
+  dataset's reader (``truth.DIRECT_PNG`` False) and the matched metrics computed in this process
+  (``scorer.METRICS_IN_WORKERS`` False);
+* ``now``: today's path: the pass decodes the candidates' colour only (depth and ids checked up to
+  their headers), the ground truth's PNGs decoded by Pillow directly, the matched candidates'
+  metrics computed in the ``--workers`` processes;
+* ``benchgen score``: the command itself on the same inputs (it also hashes every file it reads
+  for the report's provenance and checks the dataset's verification).
 
-The first two must give the same PSNR matrix and the same matches, bit for bit (checked). Each
+All must give the same PSNR matrix and the same matches, bit for bit, and ``before`` and ``now``
+the same matched metrics (every value of every row, per view too; checked). Each
 row reports wall seconds by phase and the CPU seconds of this process and its workers. The
 candidates are N symlinks to the dataset's own ``configs/GGG`` (candidate i is configuration
 i mod G: a valid candidate with colour, depth and ids, every file read and checked like any
 method's). Every dataset file is read once before timing, so no path pays for a cold page cache.
 
-    python benchmarks/bench_score_protocol.py DATASET --work DIR [-n 1000] [--views 0] [--workers 2] [--no-lpips]
+    python benchmarks/bench_score_protocol.py DATASET --work DIR [-n 1000] [--views 0] [--workers 2] [--no-lpips] [--on-the-fly]
 
 Writes ``benchmarks/results/score_speed.json`` (``--results``), the table docs/predictions.md shows.
 """
@@ -69,8 +75,17 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool, stored: bool) -> dict:
-    """Load the ground truth and score, as ``benchgen score`` does, with or without stored masks."""
+def switches() -> list[tuple[object, str]]:
+    """The module switches of today's speed-ups (True: today's path)."""
+    from benchgen.score import bestofn, scorer, truth
+
+    return [(bestofn, "COLOUR_ONLY"), (truth, "DIRECT_PNG"), (scorer, "METRICS_IN_WORKERS")]
+
+
+def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool, stored: bool,
+             now: bool = True) -> dict:
+    """Load the ground truth and score, as ``benchgen score`` does, with or without stored masks,
+    with or without today's speed-ups (``now``)."""
     from scenecore import dataset as D
     from benchgen.score import bestofn
     from benchgen.score.predictions import PredictionDir
@@ -79,6 +94,8 @@ def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpi
     from benchgen.score.truth import evaluated_views, load_truth
 
     bestofn.EXACT_FLOAT32 = bestofn.THREADS_BESIDE_WORKERS = stored
+    for module, name in switches():
+        setattr(module, name, now)
     c0, t0 = cpu_seconds(), time.perf_counter()
     scene = D.load_scene(dataset)
     source = PredictionDir(pred, scene, [f.name for f in evaluated_views(scene, views)])
@@ -89,14 +106,17 @@ def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpi
     write_report(res, out, source.method, "bench_score_protocol", str(dataset), str(pred))
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
     bestofn.EXACT_FLOAT32 = bestofn.THREADS_BESIDE_WORKERS = True
+    for module, name in switches():
+        setattr(module, name, True)
     return {"wall_s": wall, "cpu_s": cpu, "timings": res.timings, "matrix": res.matrix, "mask": truth.mask,
             "rows": res.per_ground_truth, "note": truth.masks_note}
 
 
 def part_costs(dataset: Path, pred: Path, views: int, sample: int = 8) -> dict:
     """CPU milliseconds per candidate and view of the candidate pass's two parts, on the first
-    ``sample`` candidates, best of three, one thread: reading and checking the files, and the
-    products against all G truths (float64 and exact float32)."""
+    ``sample`` candidates, best of three, one thread: reading and checking the files (all decoded,
+    or the colour decoded and depth and ids checked up to their headers), and the products against
+    all G truths (float64 and exact float32)."""
     import torch
 
     from scenecore import dataset as D
@@ -123,7 +143,8 @@ def part_costs(dataset: Path, pred: Path, views: int, sample: int = 8) -> dict:
     torch.set_num_threads(1)
     try:
         rgbs = [source.load(n).rgb for n in range(sample)]
-        costs = {"read": best(lambda: [source.load(n) for n in range(sample)])}
+        costs = {"read": best(lambda: [source.load(n) for n in range(sample)]),
+                 "read_colour": best(lambda: [source.load_rgb(n) for n in range(sample)])}
         for name, exact in (("products_float64", False), ("products_float32", True)):
             bestofn.EXACT_FLOAT32 = exact
             costs[name] = best(lambda: bestofn.view_psnr(rgbs, truth, energy))
@@ -131,6 +152,20 @@ def part_costs(dataset: Path, pred: Path, views: int, sample: int = 8) -> dict:
         bestofn.EXACT_FLOAT32 = True
         torch.set_num_threads(threads)
     return costs
+
+
+def metric_differences(a: list[dict], b: list[dict]) -> dict[str, float]:
+    """Largest absolute difference of each metric between two runs' rows (means and per-view
+    values; NaN where both are NaN counts as equal, NaN against a number as infinite)."""
+    out: dict[str, float] = {}
+    for ra, rb in zip(a, b, strict=True):
+        values = [(k, ra[k], rb[k]) for k in ra if k not in ("per_view", "match", "configuration", "match_index")]
+        values += [(k, ra["per_view"][k], rb["per_view"][k]) for k in ra["per_view"]]
+        for k, x, y in values:
+            x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+            d = np.where(np.isnan(x) & np.isnan(y), 0.0, np.abs(x - y))
+            out[k] = max(out.get(k, 0.0), float(np.where(np.isnan(d), np.inf, d).max(initial=0.0)))
+    return out
 
 
 def run_cli(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool) -> dict:
@@ -156,6 +191,7 @@ def main() -> int:
     p.add_argument("--views", type=int, default=0, help="evaluated test views (0 = all)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS in the matched metrics")
+    p.add_argument("--on-the-fly", action="store_true", help="also time the path before the masks were stored")
     p.add_argument("--results", default=str(REPO / "benchmarks" / "results" / "score_speed.json"))
     args = p.parse_args()
     print_command()
@@ -183,9 +219,12 @@ def main() -> int:
     print(f"read the dataset once ({nbytes / 2**20:.0f} MiB) in {time.perf_counter() - t0:.1f} s", flush=True)
     lpips = not args.no_lpips
     runs = {}
-    for name, fn in (("on the fly", lambda: run_path(dataset, pred, work / "score_fly", args.views, args.workers, lpips, False)),
-                     ("stored", lambda: run_path(dataset, pred, work / "score_stored", args.views, args.workers, lpips, True)),
-                     ("benchgen score", lambda: run_cli(dataset, pred, work / "score_cli", args.views, args.workers, lpips))):
+    paths = [("on the fly", lambda: run_path(dataset, pred, work / "score_fly", args.views, args.workers, lpips, False, False))]
+    paths = paths[: args.on_the_fly] + [
+        ("before", lambda: run_path(dataset, pred, work / "score_before", args.views, args.workers, lpips, True, False)),
+        ("now", lambda: run_path(dataset, pred, work / "score_stored", args.views, args.workers, lpips, True)),
+        ("benchgen score", lambda: run_cli(dataset, pred, work / "score_cli", args.views, args.workers, lpips))]
+    for name, fn in paths:
         load = os.getloadavg()[0]
         r = runs[name] = fn()
         r["load"] = (load, os.getloadavg()[0])
@@ -193,31 +232,41 @@ def main() -> int:
         print(f"{name:15s} {r['wall_s']:7.1f} s wall, {r['cpu_s']:7.1f} s CPU ("
               + ", ".join(f"{k.removesuffix('_s').replace('_', ' ')} {v:.1f}" for k, v in t.items() if k != "total_s")
               + f"); load average {os.getloadavg()[0]:.1f}", flush=True)
-    fly, new, cli = runs["on the fly"], runs["stored"], runs["benchgen score"]
-    same = (np.array_equal(fly["matrix"], new["matrix"], equal_nan=True) and np.array_equal(fly["mask"], new["mask"])
+    old, new, cli = runs["before"], runs["now"], runs["benchgen score"]
+    same = (np.array_equal(old["matrix"], new["matrix"], equal_nan=True) and np.array_equal(old["mask"], new["mask"])
             and np.array_equal(new["matrix"], cli["matrix"], equal_nan=True)
-            and [r["match"] for r in fly["rows"]] == [r["match"] for r in new["rows"]] == [r["match"] for r in cli["rows"]])
+            and [r["match"] for r in old["rows"]] == [r["match"] for r in new["rows"]] == [r["match"] for r in cli["rows"]])
+    if "on the fly" in runs:
+        fly = runs["on the fly"]
+        same = same and np.array_equal(fly["matrix"], new["matrix"], equal_nan=True) and np.array_equal(fly["mask"], new["mask"])
+    differences = metric_differences(old["rows"], new["rows"])
+    same_metrics = not any(differences.values())
     costs = part_costs(dataset, pred, args.views)
     print("CPU per candidate and view (one thread): " + ", ".join(f"{k} {v:.3f} ms" for k, v in costs.items()))
-    ratio = fly["wall_s"] / new["wall_s"]
-    print(f"same masks, PSNR matrix and matches: {same}; speed-up {ratio:.1f}x wall, {fly['cpu_s'] / new['cpu_s']:.1f}x CPU")
+    ratio = old["wall_s"] / new["wall_s"]
+    print(f"same masks, PSNR matrix and matches: {same}; same matched metrics, bit for bit: {same_metrics}"
+          + ("" if same_metrics else f" (largest differences: {differences})")
+          + f"; speed-up {ratio:.2f}x wall, {old['cpu_s'] / new['cpu_s']:.2f}x CPU")
     if not same:
         sys.exit("the paths disagree")
 
     def row(label: str, r: dict) -> list[str]:
         t = r["timings"]
         return [label, f"{t['ground_truth_s']:.0f}", f"{t['candidate_pass_s']:.0f}", f"{t['metrics_s']:.0f}",
-                f"{t.get('digests_s', 0.0):.0f}", f"{r['wall_s']:.0f}", f"{r['cpu_s']:.0f}", f"{fly['wall_s'] / r['wall_s']:.1f}x",
-                f"{fly['cpu_s'] / r['cpu_s']:.1f}x", f"{r['load'][0]:.1f} / {r['load'][1]:.1f}"]
+                f"{t.get('digests_s', 0.0):.0f}", f"{r['wall_s']:.0f}", f"{r['cpu_s']:.0f}", f"{old['wall_s'] / r['wall_s']:.2f}x",
+                f"{old['cpu_s'] / r['cpu_s']:.2f}x", f"{r['load'][0]:.1f} / {r['load'][1]:.1f}"]
 
     columns = ["path", "ground truth (s)", "candidate pass (s)", "matched metrics (s)", "digests (s)", "total wall (s)",
                "CPU (s)", "speed-up (wall)", "speed-up (CPU)", "load average at start / end"]
-    rows = [row("before: masks computed, float64 pass on torch's threads", fly),
-            row("masks stored in the dataset, exact float32 pass beside the workers", new),
-            row("`benchgen score` (stored masks, with provenance digests)", cli)]
+    rows = [row("masks computed, float64 pass on torch's threads, as before", runs["on the fly"])] if "on the fly" in runs else []
+    rows += [row("before: every candidate file decoded in the pass, ground truth through imageio, metrics in this process", old),
+             row("now: colour only in the pass, ground truth through Pillow, metrics in the workers", new),
+             row("`benchgen score` (with provenance digests)", cli)]
     nv = args.n * views / 1e3
-    parts = [["read and check one candidate's files (colour PNG, depth EXR, id PNG)", f"{costs['read']:.2f}",
+    parts = [["read and check one candidate's files in full (colour PNG, depth EXR, id PNG; before)", f"{costs['read']:.2f}",
               f"{costs['read'] * nv:.0f}"],
+             ["colour decoded and checked, depth and ids checked up to their headers (now)", f"{costs['read_colour']:.2f}",
+              f"{costs['read_colour'] * nv:.0f}"],
              ["products against all G ground truths, float64", f"{costs['products_float64']:.2f}",
               f"{costs['products_float64'] * nv:.0f}"],
              ["products against all G ground truths, exact float32", f"{costs['products_float32']:.2f}",
@@ -225,7 +274,8 @@ def main() -> int:
     protocol = f"N = {args.n}, G = {G}, {views} views, {size}, --workers {args.workers}, LPIPS {'off' if args.no_lpips else 'on'}"
     data = {"dataset": str(dataset), "n": args.n, "num_configurations": G, "views": views, "size": size,
             "workers": args.workers, "lpips": lpips, "protocol": protocol, "load_average_at_start": load0,
-            "load_average_at_end": os.getloadavg()[0], "identical": same, "speed_up_wall": ratio,
+            "load_average_at_end": os.getloadavg()[0], "identical": same, "identical_metrics": same_metrics,
+            "metric_max_abs_difference": differences, "speed_up_wall": ratio,
             "cpu_ms_per_candidate_view": costs,
             "runs": {k: {"wall_s": v["wall_s"], "cpu_s": v["cpu_s"], "timings": v["timings"], "note": v["note"],
                          "load_average": v["load"]}

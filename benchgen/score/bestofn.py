@@ -8,7 +8,8 @@ float64 every product and sum is an exact integer while it stays below 2^53, i.e
 ~700k pixels: the errors are exact, whatever the BLAS, the chunking or the number of workers.
 Float candidates (in-memory renders) are scaled to the same units and are accurate to float64.
 
-Workers only read and check candidates (the slow part: three files per view); the parent scores
+Workers only read and check candidates (the slow part: decoding each view's colour; depth and ids
+are checked up to their headers, and decoded only for matched candidates); the parent scores
 each chunk while the workers read the next ones. Memory holds the ground truth, a bounded number
 of chunks in flight and the ``(N, G)`` mean-PSNR matrix; it does not grow with N beyond that matrix.
 """
@@ -137,12 +138,20 @@ def _sse_8bit(x8: np.ndarray, y8: np.ndarray, mask: np.ndarray, y2: np.ndarray) 
 _JOB: dict[str, Any] = {}
 
 
+#: The pass decodes only the candidates' colour, checking their depth and ids files up to their
+#: headers (``load_rgb``, where the source has it); False: every file decoded and checked whole
+#: (``benchmarks/bench_score_protocol.py`` times both). The PSNR matrix is the same.
+COLOUR_ONLY = True
+
+
 def _read_chunk(start: int, stop: int) -> list[np.ndarray]:
-    """Colours of candidates ``start..stop-1``, each read and checked whole (depth and ids are dropped).
+    """Colours of candidates ``start..stop-1``, read and checked (``load_rgb``: depth and ids up to
+    their headers; a source without it: each candidate whole, depth and ids dropped).
 
     Runs in worker processes: no torch here."""
     source: CandidateSource = _JOB["source"]
-    return [source.load(n).rgb for n in range(start, stop)]
+    load_rgb = getattr(source, "load_rgb", None) if COLOUR_ONLY else None
+    return [load_rgb(n) if load_rgb else source.load(n).rgb for n in range(start, stop)]
 
 
 def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progress: bool = False) -> np.ndarray:

@@ -187,7 +187,15 @@ class LPIPS(nn.Module):
         input may be given as its :meth:`normalised_features`."""
         n0 = x0 if isinstance(x0, list) else self.normalised_features(x0)
         n1 = x1 if isinstance(x1, list) else self.normalised_features(x1)
-        return [lin((a - b).square()) for lin, a, b in zip(self.lins, n0, n1)]
+        # The heads on one thread: on several, the 1x1 convolution sums the channels in another
+        # order for some shapes, and a distance would depend on the thread count (the machine's
+        # cores, the scorer's --workers) in its last bits. They are a small part of the cost.
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            return [lin((a - b).square()) for lin, a, b in zip(self.lins, n0, n1)]
+        finally:
+            torch.set_num_threads(threads)
 
     def forward(self, x0: torch.Tensor | list[torch.Tensor], x1: torch.Tensor | list[torch.Tensor]) -> torch.Tensor:
         """LPIPS distance ``(B,)``: per-layer spatial means, summed (``lpips.LPIPS(spatial=False)``)."""

@@ -160,20 +160,29 @@ def ssim_map(pred: Array, gt: Array) -> torch.Tensor:
     *batch, H, W, C = p.shape
     if min(H, W) < 2 * SSIM_RADIUS + 1:
         raise ValueError(f"SSIM needs images of at least {2 * SSIM_RADIUS + 1} px a side, got {H}x{W}")
-    x = p.reshape(-1, H, W, C).permute(0, 3, 1, 2).contiguous()
-    y = g.reshape(-1, H, W, C).permute(0, 3, 1, 2).contiguous()
-    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # (B, 5C, H, W)
+    # (B, 5, C, H, W): x, y, x^2, y^2, xy written in place (no concatenated copy).
+    stack = torch.empty(math.prod(batch), 5, C, H, W, dtype=p.dtype, device=p.device)
+    x, y = stack[:, 0], stack[:, 1]
+    x.copy_(p.reshape(-1, H, W, C).permute(0, 3, 1, 2))
+    y.copy_(g.reshape(-1, H, W, C).permute(0, 3, 1, 2))
+    torch.mul(x, x, out=stack[:, 2])
+    torch.mul(y, y, out=stack[:, 3])
+    torch.mul(x, y, out=stack[:, 4])
     # Separable filtering as two plain 2-D matmuls with banded matrices (exact: the zero entries
     # add nothing); on CPU this is several times faster than a depthwise conv2d or a broadcast bmm.
     h, w = H - 2 * SSIM_RADIUS, W - 2 * SSIM_RADIUS
-    n = stack.shape[:2]
-    stack = (stack.reshape(-1, W) @ _band(W, stack.dtype, stack.device)).reshape(*n, H, w)
-    stack = stack.transpose(-1, -2).contiguous().reshape(-1, H) @ _band(H, stack.dtype, stack.device)
-    stack = stack.reshape(*n, w, h)  # transposed; SSIM is per pixel, so transpose back at the end
-    ux, uy, uxx, uyy, uxy = stack.split(C, dim=1)
-    vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
+    n = (stack.shape[0], 5 * C)
+    f = (stack.reshape(-1, W) @ _band(W, stack.dtype, stack.device)).reshape(*n, H, w)
+    f = f.transpose(-1, -2).contiguous().reshape(-1, H) @ _band(H, f.dtype, f.device)
+    f = f.reshape(*n, w, h)  # transposed; SSIM is per pixel, so transpose back at the end
+    ux, uy, uxx, uyy, uxy = f.split(C, dim=1)
+    # The formula with each product formed once and the filtered moments overwritten in place:
+    # the same operations on every value in the same order (2 ux uy = 2 (ux uy) exactly).
+    mx2, my2, mxy = ux * ux, uy * uy, ux * uy
+    vx, vy, vxy = uxx.sub_(mx2), uyy.sub_(my2), uxy.sub_(mxy)
     c1, c2 = SSIM_K1**2, SSIM_K2**2
-    s = (2 * ux * uy + c1) * (2 * vxy + c2) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    # (2 ux uy + c1)(2 vxy + c2) / ((ux^2 + uy^2 + c1)(vx + vy + c2))
+    s = mxy.mul_(2).add_(c1).mul_(vxy.mul_(2).add_(c2)).div_(mx2.add_(my2).add_(c1).mul_(vx.add_(vy).add_(c2)))
     return s.mean(1).transpose(-1, -2).reshape(*batch, h, w)
 
 
@@ -250,6 +259,28 @@ def lpips(pred: Array, gt: Array, mask: Array | None = None, batch_size: int = 6
 # ------------------------------------------------------------------------------------------- SSIMAE
 
 
+def _valid_medians(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """numpy's median of each row's valid entries ``(B, 1)``: the mean of the two middle order
+    statistics (+inf for a row with none). On the CPU each row's two are selected in linear time
+    (``np.partition``) rather than by sorting the row whole; elsewhere rows are sorted. The same values."""
+    if x.device.type != "cpu":
+        n = valid.sum(-1, keepdim=True)
+        # Invalid entries sort last as +inf; the two middle order statistics are then gathered.
+        srt = torch.where(valid, x, torch.full_like(x, math.inf)).sort(-1).values
+        lo = srt.gather(-1, ((n - 1) // 2).clamp(min=0))
+        hi = srt.gather(-1, (n // 2).clamp(max=x.shape[-1] - 1))
+        return 0.5 * (lo + hi)
+    xs, vs = x.detach().numpy(), valid.numpy()
+    med = np.full((len(xs), 1), np.inf, dtype=xs.dtype)
+    for r in range(len(xs)):
+        v = xs[r][vs[r]]
+        if v.size:
+            k = [(v.size - 1) // 2, v.size // 2]
+            lo, hi = np.partition(v, k)[k]
+            med[r, 0] = 0.5 * (lo + hi)
+    return torch.from_numpy(med)
+
+
 def _median_mad_normalise(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``(x - median) / mean|x - median|`` over valid entries of each row of ``(B, N)``.
 
@@ -257,11 +288,7 @@ def _median_mad_normalise(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     zero deviation; it is divided by 1 instead, so it normalises to all zeros (finite).
     """
     n = valid.sum(-1, keepdim=True)
-    # Invalid entries sort last as +inf; the two middle order statistics are then gathered.
-    srt = torch.where(valid, x, torch.full_like(x, math.inf)).sort(-1).values
-    lo = srt.gather(-1, ((n - 1) // 2).clamp(min=0))
-    hi = srt.gather(-1, (n // 2).clamp(max=x.shape[-1] - 1))
-    med = 0.5 * (lo + hi)
+    med = _valid_medians(x, valid)
     dev = torch.where(valid, (x - med).abs(), torch.zeros_like(x)).sum(-1, keepdim=True) / n
     dev = torch.where(dev > 0, dev, torch.ones_like(dev))
     return torch.where(valid, (x - med) / dev, torch.zeros_like(x))

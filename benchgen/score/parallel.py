@@ -56,8 +56,8 @@ def ordered_map(fn: Callable[..., T], tasks: Iterable[tuple], workers: int = 1) 
     """``fn(*task)`` for every task, yielded in task order (so an error is raised in that order).
 
     With ``workers`` > 1 the calls run in forked processes, which inherit the module state set
-    before this call (nothing large is pickled) and must not use torch (its OpenMP pool is not
-    fork-safe). At most ``READ_AHEAD * workers`` tasks are in flight, so memory holds a bounded
+    before this call (nothing large is pickled) and must not use torch's thread pool (its OpenMP
+    pool is not fork-safe): a task that uses torch sets it to one thread first. At most ``READ_AHEAD * workers`` tasks are in flight, so memory holds a bounded
     number of results however many tasks there are. An error, Ctrl-C or SIGTERM (through the
     command line's handler) in the caller, or closing the iterator early, ends the workers at once.
     """

@@ -147,11 +147,19 @@ def _pillow(data: bytes, mode: str | None) -> np.ndarray:
         raise PngError(f"cannot decode the PNG ({e})") from None
 
 
-def decode_ids(data: bytes) -> np.ndarray:
-    """An instance-id PNG (single-channel 8-bit) as ``(H, W)`` uint8."""
-    _, (_, _, depth, ctype, *_) = _header(data)
+def ids_png_size(data: bytes) -> tuple[int, int]:
+    """``(H, W)`` of an instance-id PNG from its IHDR, which must declare a single-channel 8-bit
+    image (:func:`png_size` plus that check; nothing is inflated)."""
+    width, height, depth, ctype, *_ = _ihdr(data)
     if ctype != 0 or depth != 8:
         raise PngError(f"instance ids must be a single-channel 8-bit PNG, got colour type {ctype} at {depth} bits")
+    return height, width
+
+
+def decode_ids(data: bytes) -> np.ndarray:
+    """An instance-id PNG (single-channel 8-bit) as ``(H, W)`` uint8."""
+    _header(data)
+    ids_png_size(data)
     return _pillow(data, None)
 
 

@@ -27,7 +27,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from scenecore import dataset as D
-from benchgen.score.pngread import PngError, decode_ids, decode_rgb, max_png_bytes, png_size
+from benchgen.score.pngread import PngError, decode_ids, decode_rgb, ids_png_size, max_png_bytes, png_size
 
 METHOD_FILE = "method.json"
 SUFFIX = {"rgb": ".png", "depth": ".exr", "ids": ".png"}
@@ -68,6 +68,8 @@ class CandidateSource(Protocol):
 
     # Optional (``getattr(source, "has_train", False)``): ``has_train`` and ``load_train(index)``,
     # the candidate's renders of the training frames ``(T, H, W, 3)`` in time order, checked.
+    # Optional: ``load_rgb(index)``, the colour ``(V, H, W, 3)`` alone for the candidate pass
+    # (:meth:`PredictionDir.load_rgb`); without it the pass takes ``load(index).rgb``.
 
 
 # --------------------------------------------------------------------------------------------
@@ -237,29 +239,45 @@ class PredictionDir:
         return self.root / self.names[index] / kind / (frame + SUFFIX[kind])
 
     def load(self, index: int) -> Candidate:
-        """Read and check candidate ``index``; :class:`PredictionError` names the bad file."""
+        """Read and check candidate ``index`` whole (colour, depth, ids decoded and their values
+        checked); :class:`PredictionError` names the bad file."""
         rgb = np.stack([self._read(self.path(index, "rgb", f), "rgb") for f in self.frames])
         depth = np.stack([self._read(self.path(index, "depth", f), "depth") for f in self.frames]) if self.has_depth else None
         ids = np.stack([self._read(self.path(index, "ids", f), "ids") for f in self.frames]) if self.has_ids else None
         return Candidate(rgb, depth, ids)
+
+    def load_rgb(self, index: int) -> np.ndarray:
+        """Candidate ``index``'s colour ``(V, H, W, 3)``, read and checked, for the candidate pass,
+        which needs nothing else. Its depth and ids files are checked up to their headers (a regular
+        file of a size such a file can have, whose header declares the scene's image size; an id PNG
+        single-channel 8-bit) without being decoded: decoding and checking their values is
+        :meth:`load`'s, for the candidates whose full metrics are computed (docs/predictions.md)."""
+        rgb = np.stack([self._read(self.path(index, "rgb", f), "rgb") for f in self.frames])
+        for kind in ("depth",) * self.has_depth + ("ids",) * self.has_ids:
+            for f in self.frames:
+                self._read(self.path(index, kind, f), kind, decode=False)
+        return rgb
 
     def load_train(self, index: int) -> np.ndarray:
         """Candidate ``index``'s renders of the training frames ``(T, H, W, 3)``, in time order, checked."""
         folder = self.root / self.names[index] / TRAIN / "rgb"
         return np.stack([self._read(folder / (f + SUFFIX["rgb"]), "rgb") for f in self.train_frames])
 
-    def _read(self, path: Path, kind: str) -> np.ndarray:
+    def _read(self, path: Path, kind: str, decode: bool = True) -> np.ndarray | None:
         """One view's file, checked. Only a regular file of a size such an image can have is read,
         and its header's size must match the scene's before anything is decoded: a FIFO, a link
-        to ``/dev/zero`` or a small file that inflates to gigabytes is one line naming it."""
+        to ``/dev/zero`` or a small file that inflates to gigabytes is one line naming it.
+        ``decode=False``: those header checks alone (None)."""
         try:
             if kind == "depth":
                 size = D.exr_size(path)
             else:
                 data = D.read_regular(path, max_png_bytes(self.scene.height, self.scene.width))
-                size = png_size(data)
+                size = (png_size if kind == "rgb" else ids_png_size)(data)
             if p := D.size_problem(path, size, self.scene):
                 raise PredictionError(p)
+            if not decode:
+                return None
             a = D.read_depth(path) if kind == "depth" else (decode_rgb if kind == "rgb" else decode_ids)(data)
         except PngError as e:
             if data.startswith(JPEG_MAGIC):

@@ -17,6 +17,7 @@ Candidates come from a :class:`predictions.CandidateSource`: a prediction direct
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +29,7 @@ from benchgen.score import bestofn
 from benchgen.score import coverage as COV
 from benchgen.score import fidelity as F
 from benchgen.score import metrics as M
+from benchgen.score.parallel import ordered_map
 from benchgen.score.predictions import Candidate, CandidateSource
 from benchgen.score.truth import Truth
 
@@ -165,10 +167,13 @@ def metric_keys(source: CandidateSource, with_lpips: bool) -> list[str]:
 def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, workers: int = 1, progress: bool = False) -> ScoreResult:
     """Best-of-N scoring of ``source``'s candidates against every configuration of ``truth``.
 
-    Every candidate is checked while it is scored (a malformed one raises
-    :class:`predictions.PredictionError` before anything is returned); the full metrics are
-    computed for the matched candidates only, each loaded once more. With renders of the training
+    Every candidate is checked while it is scored: its colour whole, its depth and ids files up to
+    their headers (``load_rgb``, where the source has it); the full metrics are computed for the
+    matched candidates only, each loaded once more and checked whole. A malformed candidate raises
+    :class:`predictions.PredictionError` before anything is returned. With renders of the training
     video, also the fidelity check and best of N over the faithful candidates (:func:`guarded`).
+    ``workers`` > 1: the candidates are read, and the matched ones' metrics computed, in that many
+    processes (the same result).
     """
     if with_lpips:
         M.get_model()  # fail on missing LPIPS weights before the long pass, not after it
@@ -179,7 +184,7 @@ def score(truth: Truth, source: CandidateSource, with_lpips: bool = True, worker
     timings["candidate_pass_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    rows = matched_rows(truth, source, best, with_lpips, progress)
+    rows = matched_rows(truth, source, best, with_lpips, progress, workers=workers)
     timings["metrics_s"] = time.perf_counter() - t0
     keys = metric_keys(source, with_lpips)
     t0 = time.perf_counter()
@@ -209,35 +214,63 @@ def guarded(truth: Truth, source: CandidateSource, matrix: np.ndarray, rows: lis
     best = F.guarded_match(matrix, np.asarray(fid["faithful"], bool))
     same = {r["configuration"]: r for r in rows if best.indices[r["configuration"]] == r["match_index"]}
     todo = [g for g in range(len(best.indices)) if g not in same]
-    new = matched_rows(truth, source, best, with_lpips, progress, todo) if todo else []
+    new = matched_rows(truth, source, best, with_lpips, progress, todo, workers) if todo else []
     grows = sorted([*same.values(), *new], key=lambda r: r["configuration"])
     return {**fid, "summary": summarise(grows, keys), "per_ground_truth": F.trim_rows(grows),
             "distinct_matches": int(len(np.unique(best.indices)))}
 
 
+#: Compute the matched candidates' metrics in the ``--workers`` processes (torch on one thread in
+#: each); False: all in this process (``benchmarks/bench_score_protocol.py`` times both). The same rows.
+METRICS_IN_WORKERS = True
+
+# Set before forking workers (:func:`parallel.ordered_map`), so that they inherit it unpickled.
+_JOB: dict[str, Any] = {}
+
+
 def matched_rows(truth: Truth, source: CandidateSource, best: M.BestOfN, with_lpips: bool, progress: bool = False,
-                 configurations: list[int] | None = None) -> list[dict[str, Any]]:
+                 configurations: list[int] | None = None, workers: int = 1) -> list[dict[str, Any]]:
     """Full metrics of each ground truth's match ``best.indices[g]`` (PSNR ``best.scores[g]``), for
-    ``configurations`` (default: all), sorted by configuration; each matched candidate loaded once."""
+    ``configurations`` (default: all), sorted by configuration; each matched candidate loaded once
+    (and checked whole: :meth:`predictions.PredictionDir.load`), each ground truth's views read once.
+    ``workers`` > 1 computes them in that many processes, one matched candidate per task."""
     from tqdm import tqdm
 
     gs = np.arange(len(best.indices)) if configurations is None else np.asarray(configurations, dtype=np.int64)
-    num_objects = truth.scene.num_objects
+    tasks = [(int(n), [int(g) for g in gs[best.indices[gs] == n]]) for n in np.unique(best.indices[gs])]
+    parallel = workers > 1 and METRICS_IN_WORKERS and getattr(source, "fork_safe", True)
+    _JOB.update(truth=truth, source=source, best=best, with_lpips=with_lpips, parent=os.getpid())
     rows: list[dict[str, Any]] = []
-    with tqdm(total=len(gs), desc="matched metrics", unit="gt", disable=not progress, dynamic_ncols=True) as bar:
-        for n in np.unique(best.indices[gs]):  # each matched candidate is loaded once
-            cand = source.load(int(n))
-            pred = _to_unit(cand.rgb)
-            # LPIPS's network runs once per image set: the candidate's here, each ground truth's
-            # kept by `truth` across candidate sets (the distances are the same, feature for feature).
-            pred_features = M.lpips_features(pred.float()) if with_lpips else None
-            for g in gs[best.indices[gs] == n]:
-                rgb, depth, ids = truth.views(int(g))
-                row = {"configuration": int(g), "match": source.names[n], "match_index": int(n), "psnr": float(best.scores[g])}
-                feats = (pred_features, truth.lpips_features(int(g))) if with_lpips else None
-                full = match_metrics(cand, rgb, depth, ids, truth.masks(int(g)), with_lpips, feats, num_objects, pred)
-                full["per_view"] = {"psnr": match_view_psnr(cand.rgb, truth, int(g)), **full["per_view"]}
-                rows.append({**row, **full})
-                bar.update()
+    try:
+        with tqdm(total=len(gs), desc="matched metrics", unit="gt", disable=not progress, dynamic_ncols=True) as bar:
+            for new in ordered_map(_candidate_rows, tasks, workers if parallel else 1):
+                rows += new
+                bar.update(len(new))
+    finally:
+        _JOB.clear()
     rows.sort(key=lambda r: r["configuration"])
+    return rows
+
+
+def _candidate_rows(n: int, gs: list[int]) -> list[dict[str, Any]]:
+    """:func:`matched_rows`' rows of candidate n, matched to ground truths ``gs``. In a worker
+    process torch runs on one thread (the workers share the cores; torch in a forked process must
+    not start a thread pool)."""
+    if os.getpid() != _JOB["parent"]:
+        torch.set_num_threads(1)
+    truth, source, best, with_lpips = _JOB["truth"], _JOB["source"], _JOB["best"], _JOB["with_lpips"]
+    cand = source.load(n)
+    pred = _to_unit(cand.rgb)
+    # LPIPS's network runs once per image set: the candidate's here, each ground truth's kept by
+    # `truth` across candidate sets when it runs in this process (the distances are the same,
+    # feature for feature).
+    pred_features = M.lpips_features(pred.float()) if with_lpips else None
+    rows = []
+    for g in gs:
+        rgb, depth, ids = truth.views(g)
+        row = {"configuration": g, "match": source.names[n], "match_index": n, "psnr": float(best.scores[g])}
+        feats = (pred_features, truth.lpips_features(g, rgb)) if with_lpips else None
+        full = match_metrics(cand, rgb, depth, ids, truth.masks(g), with_lpips, feats, truth.scene.num_objects, pred)
+        full["per_view"] = {"psnr": match_view_psnr(cand.rgb, truth, g), **full["per_view"]}
+        rows.append({**row, **full})
     return rows

@@ -11,9 +11,10 @@ are read again from the dataset when its matched candidate gets its full metrics
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -23,6 +24,7 @@ from benchgen.score import covisibility as C
 from benchgen.score import covisibility_store as store
 from benchgen.score import metrics as M
 from benchgen.score.parallel import ordered_map
+from benchgen.score.pngread import PngError, decode_ids, decode_rgb, max_png_bytes
 
 
 def evaluated_views(scene: D.Scene, max_views: int = 0) -> list[D.Frame]:
@@ -76,22 +78,24 @@ class Truth:
 
     def views(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Configuration g's ``rgb (V, H, W, 3)`` uint8, ``depth (V, H, W)``, ``ids (V, H, W)`` from
-        disk, kept (read-only) for the next call when all configurations fit :data:`VIEWS_CACHE_BYTES`."""
+        disk (:func:`read_frame`), kept (read-only) for the next call when all configurations fit
+        :data:`VIEWS_CACHE_BYTES`."""
         if g in self._views:
             return self._views[g]
-        rgb, depth, ids = (np.stack(x) for x in zip(*(D.read_frame(self.root, f.name, g, scene=self.scene) for f in self.frames)))
+        rgb, depth, ids = (np.stack(x) for x in zip(*(read_frame(self.root, f.name, g, self.scene) for f in self.frames)))
         if self.num_configurations * (rgb.nbytes + depth.nbytes + ids.nbytes) <= VIEWS_CACHE_BYTES:
             for a in (rgb, depth, ids):
                 a.setflags(write=False)
             self._views[g] = (rgb, depth, ids)
         return rgb, depth, ids
 
-    def lpips_features(self, g: int) -> list[list[torch.Tensor]]:
+    def lpips_features(self, g: int, rgb: np.ndarray | None = None) -> list[list[torch.Tensor]]:
         """:func:`metrics.lpips_features` of configuration g's colour (:func:`metrics.from_rgb8`),
-        kept for the next candidate set when every configuration's fit :data:`LPIPS_CACHE_BYTES`."""
+        kept for the next candidate set when every configuration's fit :data:`LPIPS_CACHE_BYTES`.
+        ``rgb``: that colour, when the caller has read it (:meth:`views`), so it is not read again."""
         if g in self._lpips:
             return self._lpips[g]
-        feats = M.lpips_features(M.from_rgb8(self.views(g)[0]))
+        feats = M.lpips_features(M.from_rgb8(self.views(g)[0] if rgb is None else rgb))
         size = sum(t.numel() * t.element_size() for batch in feats for t in batch)
         if self.num_configurations * size <= LPIPS_CACHE_BYTES:
             self._lpips[g] = feats
@@ -118,12 +122,45 @@ def _training_depth_ids() -> tuple[np.ndarray, np.ndarray]:
     return _JOB["train"]
 
 
+#: Read the ground truth's PNGs through :mod:`pngread` (Pillow directly) rather than through the
+#: dataset's reader (imageio, whose format detection costs more than decoding a small PNG); False:
+#: the dataset's reader (``benchmarks/bench_score_protocol.py`` times both). The same arrays.
+DIRECT_PNG = True
+
+
+def _png(path: Path, scene: D.Scene, decode: Callable[[bytes], np.ndarray],
+         dataset_reader: Callable[[Path], np.ndarray]) -> np.ndarray:
+    """A ground-truth PNG decoded by ``decode`` (:mod:`pngread`), as ``dataset_reader`` returns it.
+    A file the direct path does not take as the dataset writes it (16-bit, grey colour, another
+    format) goes to ``dataset_reader``, so what it accepts and the errors it gives stay its own."""
+    if DIRECT_PNG:
+        with contextlib.suppress(PngError):
+            a = decode(D.read_regular(path, max_png_bytes(scene.height, scene.width)))
+            if a.dtype == np.uint8:
+                return a
+    return dataset_reader(path)
+
+
 def _read_rgb(root: Path, scene: D.Scene, name: str, g: int) -> np.ndarray:
     path = D.frame_paths(root, name, g).rgb
-    rgb = D.read_rgb(path)
+    rgb = _png(path, scene, decode_rgb, D.read_rgb)
     if p := D.size_problem(path, rgb.shape[:2], scene):
         raise D.DatasetError(p)
     return rgb
+
+
+def read_frame(root: Path, name: str, g: int, scene: D.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`scenecore.dataset.read_frame` with ``scene`` (the same arrays, checks and errors),
+    its PNGs decoded as :func:`_png` does."""
+    if not DIRECT_PNG:
+        return D.read_frame(root, name, g, scene=scene)
+    p = D.frame_paths(root, name, g)
+    rgb, depth, ids = _png(p.rgb, scene, decode_rgb, D.read_rgb), D.read_depth(p.depth), _png(p.ids, scene, decode_ids, D.read_ids)
+    for problem in (D.size_problem(p.rgb, rgb.shape[:2], scene), D.size_problem(p.depth, depth.shape, scene),
+                    D.size_problem(p.ids, ids.shape, scene) or D.ids_problem(p.ids, ids, scene.num_objects)):
+        if problem:
+            raise D.DatasetError(problem)
+    return rgb, depth, ids
 
 
 def _load_configuration(g: int) -> tuple[np.ndarray, np.ndarray, str]:
@@ -135,7 +172,7 @@ def _load_configuration(g: int) -> tuple[np.ndarray, np.ndarray, str]:
     if mask is not None:
         rgb = [_read_rgb(root, scene, f.name, g) for f in frames]
     else:
-        rgb, depth, ids = zip(*(D.read_frame(root, f.name, g, scene=scene) for f in frames))
+        rgb, depth, ids = zip(*(read_frame(root, f.name, g, scene) for f in frames))
         mask = configuration_masks(scene, scales[g], frames, np.stack(depth), np.stack(ids), *_training_depth_ids())
     V = len(frames)
     return (np.stack(rgb) * mask[..., None]).reshape(V, -1), mask.reshape(V, -1), source

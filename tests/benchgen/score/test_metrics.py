@@ -118,6 +118,37 @@ def test_masked_ssim_averages_skimage_map_over_unmasked_interior():
     assert M.ssim(a, b2) != pytest.approx(M.ssim(a, b), abs=1e-3)
 
 
+def _ssim_map_with_concatenated_stack(p: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The SSIM map as computed before its moments were written in place: concatenated copies and
+    the formula written out (the reference :func:`metrics.ssim_map` must equal bit for bit)."""
+    *batch, H, W, C = p.shape
+    x = p.reshape(-1, H, W, C).permute(0, 3, 1, 2).contiguous()
+    y = g.reshape(-1, H, W, C).permute(0, 3, 1, 2).contiguous()
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    h, w, n = H - 10, W - 10, stack.shape[:2]
+    stack = (stack.reshape(-1, W) @ M._band(W, stack.dtype, stack.device)).reshape(*n, H, w)
+    stack = (stack.transpose(-1, -2).contiguous().reshape(-1, H) @ M._band(H, stack.dtype, stack.device)).reshape(*n, w, h)
+    ux, uy, uxx, uyy, uxy = stack.split(C, dim=1)
+    vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
+    c1, c2 = M.SSIM_K1**2, M.SSIM_K2**2
+    s = (2 * ux * uy + c1) * (2 * vxy + c2) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    return s.mean(1).transpose(-1, -2).reshape(*batch, h, w)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_ssim_map_is_bit_identical_to_the_written_out_formula(threads):
+    gen = torch.Generator().manual_seed(7)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for shape, dtype in (((6, 48, 40, 3), torch.float32), ((2, 3, 33, 29, 3), torch.float64), ((21, 64, 64, 3), torch.float32)):
+            a = torch.rand(shape, generator=gen, dtype=dtype)
+            b = (a + 0.1 * torch.randn(shape, generator=gen, dtype=dtype)).clamp(0, 1)
+            assert torch.equal(M.ssim_map(a, b), _ssim_map_with_concatenated_stack(a, b)), (shape, dtype)
+    finally:
+        torch.set_num_threads(old)
+
+
 def test_ssim_rejects_tiny_images():
     with pytest.raises(ValueError, match="at least 11"):
         M.ssim(np.zeros((10, 30, 3)), np.zeros((10, 30, 3)))
@@ -571,3 +602,18 @@ def test_covisibility_transforms_and_configured_depth():
     ids = np.array([[0, 1], [2, 255]], np.uint8)
     base = np.array([[2.0, 3.0], [4.0, np.inf]])
     assert np.array_equal(C.configured_depth(base, ids, scales), [[2.0, 3.0 * 0.7], [4.0 * 1.4, np.inf]])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssimae_medians_are_numpys(dtype):
+    """Each row's median of its valid entries, selected without sorting, is numpy's (mean of the two
+    middle values for an even count), ties and odd, even, single and empty rows included."""
+    gen = torch.Generator().manual_seed(3)
+    x = torch.rand(6, 501, generator=gen, dtype=dtype)
+    x[1] = torch.round(x[1] * 3)  # ties
+    valid = torch.rand(6, 501, generator=gen) > 0.4
+    valid[2], valid[3], valid[4, 1:], valid[5] = True, False, False, torch.arange(501) < 2
+    med = M._valid_medians(x, valid)
+    for r in range(6):
+        v = x[r][valid[r]].numpy()
+        assert med[r, 0].item() == (np.median(v).astype(v.dtype) if v.size else np.inf), r

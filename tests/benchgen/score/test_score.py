@@ -104,10 +104,10 @@ def test_single_candidate_against_reference_psnr(tiny_dataset, tmp_path):
     assert np.load(tmp_path / "out" / "psnr_matrix.npy")[0, 1] > m["per_ground_truth"][0]["psnr"]
 
 
-def _mutate(pred: Path, dataset: Path, case: str) -> str:
-    """Break candidate ``b`` of ``pred`` in one way; returns the path the error must name."""
+def _mutate(pred: Path, dataset: Path, case: str, cand: str = "b") -> str:
+    """Break candidate ``cand`` of ``pred`` in one way; returns the path the error must name."""
     view = frame_names(dataset)[4]
-    rgb, depth, ids = (pred / "b" / k / f"{view}{s}" for k, s in (("rgb", ".png"), ("depth", ".exr"), ("ids", ".png")))
+    rgb, depth, ids = (pred / cand / k / f"{view}{s}" for k, s in (("rgb", ".png"), ("depth", ".exr"), ("ids", ".png")))
     if case == "missing view":
         rgb.unlink()
     elif case == "wrong size":
@@ -129,6 +129,13 @@ def _mutate(pred: Path, dataset: Path, case: str) -> str:
         return str(pred / "b" / "depth")
     elif case == "grey image":
         Image.fromarray(np.zeros((32, 32), np.uint8)).save(rgb)
+    elif case == "wrong-size depth":
+        D.write_depth(depth, np.ones((16, 32), np.float32))
+    elif case == "RGB ids":
+        Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(ids)
+    elif case == "depth a directory":
+        depth.unlink()
+        depth.mkdir()
     return str(rgb if "image" in case or case in ("missing view", "wrong size") else depth if "depth" in case else ids)
 
 
@@ -346,3 +353,54 @@ def test_squared_error_by_id_splits_the_psnr_error():
     assert M.squared_error_by_id(pred[0], gt, ids, 3)[1].sum() == 4 * 64  # no mask: every pixel
     with pytest.raises(ValueError, match="ids of shape"):
         M.squared_error_by_id(pred[0], gt, ids[:2], 3)
+
+
+def test_fast_paths_give_the_previous_metrics(tiny_dataset, tmp_path, monkeypatch):
+    """The candidate pass decoding colour alone, the ground truth's PNGs through Pillow directly and
+    the matched metrics in worker processes give the matrix and every row (SSIM, LPIPS, SSIMAE, PQ,
+    mIoU, per view) that decoding every file in the pass, reading through the dataset's reader and
+    computing the metrics in this process on torch's threads give, bit for bit."""
+    from benchgen.score import bestofn, scorer
+    from benchgen.score import truth as T
+
+    pred = _perturbed_pred(tiny_dataset, tmp_path / "pred", 7)
+    rng = np.random.default_rng(2)
+    for i in range(3, 7):  # depth and ids off too, so that SSIMAE, PQ and mIoU are not trivial
+        for path in (pred / f"{i:02d}" / "depth").iterdir():
+            d = D.read_depth(path)
+            D.write_depth(path, (d * rng.uniform(0.8, 1.2, d.shape)).astype(np.float32))
+        for path in (pred / f"{i:02d}" / "ids").iterdir():
+            ids = D.read_ids(path)
+            ids[rng.integers(0, 32, 40), rng.integers(0, 32, 40)] = D.NO_OBJECT
+            D.write_ids(path, ids)
+    shutil.rmtree(pred / "00")  # configuration 0 is then matched to a perturbed copy
+
+    def run_score(workers: int) -> tuple[np.ndarray, str]:
+        truth = load_truth(tiny_dataset)
+        res = scorer.score(truth, PredictionDir(pred, truth.scene, [f.name for f in truth.frames]), workers=workers)
+        return res.matrix, json.dumps(res.per_ground_truth, sort_keys=True)
+
+    matrix, rows = run_score(2)
+    assert torch.get_num_threads() > 1  # one worker runs torch on its threads, two workers on one each
+    assert run_score(1)[1] == rows
+    for module, switch in ((bestofn, "COLOUR_ONLY"), (T, "DIRECT_PNG"), (scorer, "METRICS_IN_WORKERS")):
+        monkeypatch.setattr(module, switch, False)
+    old_matrix, old_rows = run_score(2)
+    assert np.array_equal(matrix, old_matrix) and rows == old_rows
+    r0 = json.loads(rows)[0]
+    assert r0["match"] != "00" and 0 < r0["ssimae"] and r0["pq"] < 100 and 0 < r0["lpips"]
+
+
+@pytest.mark.parametrize("case", ["NaN depth", "ids out of range", "wrong-size depth", "RGB ids", "depth a directory"])
+def test_unmatched_candidates_are_checked_up_to_headers(tiny_dataset, tmp_path, capsys, case):
+    """Depth and ids of a candidate that matches no ground truth are checked up to their headers
+    only: a bad value there is never used and passes; a file of the wrong size, kind or type does not."""
+    pred = _perturbed_pred(tiny_dataset, tmp_path / "pred", 4)  # candidate 03 (noisy) matches nothing
+    named = _mutate(pred, tiny_dataset, case, cand="03")
+    code = run(pred, tiny_dataset, tmp_path / "out", "--no-lpips", "--workers", "2")
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    if case in ("NaN depth", "ids out of range"):
+        assert code == 0 and "03" not in [r["match"] for r in json.loads((tmp_path / "out" / "metrics.json").read_text())["per_ground_truth"]]
+    else:
+        assert code == 2 and len(err) == 1 and named in err[0], err
+        assert not (tmp_path / "out").exists()
