@@ -418,12 +418,12 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
             for part in parts:
                 coll.objects.link(part)
                 part.parent = empty
-                # The mesh is a viewport preview: renders show the volume, the learned field
-                # (the mesh renders far from OSN's images, docs/export-and-addon.md).
-                is_mesh = part.type == "MESH"
-                part.hide_render = is_mesh
+                # The mesh is a viewport preview, not rendered: renders show the volume, the
+                # learned field (docs/export-and-addon.md has both measured). render_meshes()
+                # lets them into renders.
+                part.hide_render = part.type == "MESH"
                 if len(o.frames) < data.num_frames:
-                    key_presence(part, data.num_frames, o.frames, made, ("hide_viewport",) if is_mesh else ("hide_viewport", "hide_render"))
+                    key_presence(part, data.num_frames, o.frames, made, _presence_paths(part))
             _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)  # keys the poses at that scale
         cams = [("OSN training camera", data.camera_to_scene)]
         if data.test_cameras is not None:
@@ -464,6 +464,28 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
 # --------------------------------------------------------------------------------------------
 # Configurations
 # --------------------------------------------------------------------------------------------
+
+
+def _presence_paths(part: bpy.types.Object) -> tuple[str, ...]:
+    """What presence keys hide: a mesh's render visibility is left off (a viewport preview)."""
+    return ("hide_viewport",) if part.type == "MESH" and part.hide_render else ("hide_viewport", "hide_render")
+
+
+def render_meshes(coll: bpy.types.Collection, on: bool = True) -> None:
+    """Let the meshes into renders (``on``) or keep them out, hidden where their object has no pose."""
+    num_frames = len(manifest(coll)["timestamps"])
+    for empty in osn_objects(coll):
+        frames = np.asarray(empty[P_FRAMES], dtype=np.int64)
+        for part in empty.children:
+            if part.type != "MESH":
+                continue
+            fcurves = _fcurve_collection(part, create=False)
+            keyed = fcurves.find("hide_render") if fcurves is not None else None
+            if keyed is not None:
+                fcurves.remove(keyed)
+            part.hide_render = not on
+            if on and len(frames) < num_frames:
+                key_presence(part, num_frames, frames, paths=("hide_render",))
 
 
 def osn_objects(coll: bpy.types.Collection) -> list[bpy.types.Object]:

@@ -13,7 +13,8 @@ Export directory (format ``osn-export`` version 1, see docs/export-and-addon.md)
     objects/<id>.vdb         grids "density" (float) and "color" (vec3, linear RGB); with the
                              object's "field" entry also the field's own grids (below)
     objects/<id>_planes.npz  the field's colour planes (objects whose field has them)
-    objects/<id>.ply         marching-cubes mesh, binary little-endian, sRGB vertex colours
+    objects/<id>.ply         surface mesh (training views fused, or marching cubes: mesh_source),
+                             binary little-endian, sRGB vertex colours
 
 Conventions:
 * Scene frame = the anchor's object frame, in the anchor's unit (the anchor has ``sbar = 1``).

@@ -62,7 +62,10 @@ def fidelity_settings(scene: Any, samples: int) -> None:
 def _show_only(coll: Any, part: str, sb: Any) -> None:
     """Hide the meshes (``part == "volumes"``) or the volumes. The import keys ``hide_render``
     where an object has no pose; that key wins at render time, so it is kept only where it
-    hides the part that is shown (and the part not shown is unkeyed and hidden)."""
+    hides the part that is shown (and the part not shown is unkeyed and hidden). The meshes,
+    kept out of renders by the import, are let in (``render_meshes``)."""
+    if part == "meshes":
+        sb.render_meshes(coll)
     for o in coll.objects:
         if o.type not in {"MESH", "VOLUME"}:
             continue

@@ -19,12 +19,12 @@ from torch import nn
 
 from scenecore import dataset as D
 from scenecore import export_format as core
-from scenecore.cameras import invert_pose
+from scenecore.cameras import invert_pose, pixel_rays
 from scenecore.export_format import ExportFormatError
 from scenecore.lock import output_lock
 from osn.export.writer import ExportObject, ExportScene, ScaleNetwork, write_export
 from osn.model.fields import DENSITY_SHIFT, PLANE_AXES, DenseGridField
-from osn.model.placement import novel_to_training_camera
+from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.run import TrainedRun, load_run
 from osn.model.scale_net import VALID_THRESHOLD
 from osn.preprocess.inputs import SceneInputs
@@ -160,6 +160,63 @@ def field_parameters(field_module: Any, resolution: int, colour: np.ndarray, chu
     return density_raw, torch.cat(col).numpy().reshape(shape + (3,)), planes
 
 
+#: Most training frames a view mesh is fused from (evenly spaced over the object's frames).
+VIEW_MESH_FRAMES = 15
+#: Neighbouring pixels are joined by a triangle when their depths differ by less than this share
+#: (a fuzzy surface's rendered depth is noisy: a tighter bound tears holes into walls).
+VIEW_MESH_DEPTH_STEP = 0.3
+#: A pixel becomes a vertex where the object alone covers it at least this much.
+VIEW_MESH_MIN_ACC = 0.5
+
+
+def view_mesh(run: TrainedRun, position: int, frames: Sequence[int] | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A surface of object ``position`` fused from its training views: ``(vertices (V, 3) object
+    coordinates, faces (F, 3), colours (V, 3) display values)`` or None when no view covers it.
+
+    The object is rendered alone (``TrainedRun.render_view``, scale 1) from the training camera at
+    up to :data:`VIEW_MESH_FRAMES` of its frames; every pixel it covers (opacity at least
+    :data:`VIEW_MESH_MIN_ACC`) becomes a vertex at its rendered depth with its rendered colour
+    (divided by the opacity: the colour of what it sees, not mixed with the black background), and
+    neighbouring pixels are joined where their depths are close. Unlike a level set of the
+    density, the surface is where OSN's renders put it, fog included, with the colour planes'
+    detail; it is only as complete as the views (a side never filmed has no surface).
+    """
+    inp = run.inputs
+    obj = inp.objects[position]
+    own = np.asarray(obj.frames if frames is None else frames)
+    if len(own) > VIEW_MESH_FRAMES:
+        own = own[np.round(np.linspace(0, len(own) - 1, VIEW_MESH_FRAMES)).astype(int)]
+    H, W = inp.height, inp.width
+    _, dirs = pixel_rays(inp.K, np.eye(4), W, H)
+    verts, faces, cols = [], [], []
+    count = 0
+    for t in own:
+        r = run.render_view(None, int(t), np.ones(inp.num_objects), objects=[position])
+        depth, acc = r["depth"].reshape(-1), r["acc"].reshape(-1)
+        ok = np.isfinite(depth) & (acc >= VIEW_MESH_MIN_ACC)
+        if not ok.any():
+            continue
+        T = object_transforms(inp, np.eye(4), int(t), np.ones(inp.num_objects))[position]
+        pts = dirs[ok] * depth[ok, None]
+        verts.append(pts @ T[:3, :3].T + T[:3, 3])
+        cols.append(np.clip(r["rgb"].reshape(-1, 3)[ok] / acc[ok, None], 0.0, 1.0))
+        index = np.full(H * W, -1)
+        index[ok] = count + np.arange(int(ok.sum()))
+        count += int(ok.sum())
+        grid, d = index.reshape(H, W), np.where(ok, depth, 1.0).reshape(H, W)  # 1.0: never read (not ok)
+        a, b, c, e = grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1], grid[1:, 1:]
+        da, db, dc, de = d[:-1, :-1], d[:-1, 1:], d[1:, :-1], d[1:, 1:]
+        for tri, dt in (((a, c, b), (da, dc, db)), ((b, c, e), (db, dc, de))):
+            stack = np.stack(dt)
+            close = stack.max(0) <= stack.min(0) * (1.0 + VIEW_MESH_DEPTH_STEP)
+            keep = close & np.all(np.stack(tri) >= 0, axis=0)
+            faces.append(np.stack([x[keep] for x in tri], 1))
+    if not count:
+        return None
+    return np.concatenate(verts), np.concatenate(faces).astype(np.int64), np.concatenate(cols)
+
+
 def export_layers_from_torch(modules: Sequence[Any]) -> list[tuple[np.ndarray, np.ndarray]]:
     """``[(W, b), ...]`` from a sequence of ``torch.nn.Linear`` modules, in order."""
     return [(m.weight.detach().cpu().double().numpy(), m.bias.detach().cpu().double().numpy()) for m in modules]
@@ -216,6 +273,7 @@ def export_run(
     seed: int = 0,
     echo: Callable[[str], None] = print,
     dataset: str | Path | None = None,
+    mesh: str = "views",
 ) -> Path:
     """Export an ``osn train`` run directory; returns the manifest path.
 
@@ -224,16 +282,19 @@ def export_run(
     (default: the field's own resolution), derives the learned valid intervals from the scale
     network, adds the test rig of ``dataset`` (the benchgen dataset the run was trained on) when
     it is given and the inputs are aligned to it, and valid configurations
-    (:func:`exported_samples`).
+    (:func:`exported_samples`). ``mesh``: each object's surface fused from its training views
+    (``"views"``, :func:`view_mesh`) or the density's marching-cubes level set (``"level"``).
     """
+    if mesh not in ("views", "level"):
+        raise ValueError(f"mesh must be 'views' or 'level', got {mesh!r}")
     if samples is not None and samples < 0:
         raise ValueError(f"the number of exported samples must be >= 0, got {samples}")
     with output_lock(out_dir):  # from the start, so a second export stops before its costly sampling
-        return _export_run_locked(Path(run_dir), out_dir, resolution, samples, seed, echo, dataset)
+        return _export_run_locked(Path(run_dir), out_dir, resolution, samples, seed, echo, dataset, mesh)
 
 
 def _export_run_locked(run: Path, out_dir: str | Path, resolution: int | None, samples: int | None, seed: int,
-                       echo: Callable[[str], None], dataset: str | Path | None) -> Path:
+                       echo: Callable[[str], None], dataset: str | Path | None, mesh: str = "views") -> Path:
     trained = load_run(run)
     inputs = trained.inputs
     grids = {}
@@ -251,6 +312,10 @@ def _export_run_locked(run: Path, out_dir: str | Path, resolution: int | None, s
     elif dataset is not None:
         test = rig_cameras(dataset, len(inputs.timestamps))
     scene = export_scene_from_inputs(inputs, grids, net, test_camera_to_world=test, source=str(run.resolve()))
+    if mesh == "views":
+        for k, o in enumerate(scene.objects):
+            o.surface = view_mesh(trained, k)
+        echo(f"export: meshes fused from the training views ({sum(len(o.surface[1]) for o in scene.objects if o.surface)} faces)")
     scene.meta.update({"name": run.name, "iteration": trained.iteration, "dataset": None if dataset is None else str(dataset)})
     scene.samples = exported_samples(run, scene, trained, samples, seed, echo)
     return write_export(out_dir, scene, echo=echo)

@@ -2,7 +2,8 @@
 
 :func:`write_export` writes a versioned JSON manifest naming every file with its size and sha256,
 one OpenVDB file per object (grids ``density`` and ``color``, via bpy's bundled OpenVDB), a
-marching-cubes PLY mesh with vertex colours per object, the poses in ``arrays.npz`` and the
+PLY mesh with vertex colours per object (the exporter's surface, else the density's marching
+cubes), the poses in ``arrays.npz`` and the
 scale network in ``scale_net.npz``. Everything is written into a temporary sibling directory
 that is renamed into place at the end, so a killed export leaves no half-written directory.
 Building an :class:`ExportScene` from a trained run is :mod:`osn.export.from_run`'s job.
@@ -58,6 +59,9 @@ class ExportObject:
         colour_planes: optional ``(3, P, P, 3)`` pre-sigmoid colour planes over the box, added to
             ``colour_raw``: planes xy, xz, yz (``scenecore.export_format.PLANE_AXES``), ``[i, v, u]`` at box-normalised
             ``(u, v) = -1 + 2 (col, row) / (P - 1)`` along the plane's first and second axis.
+        surface: optional ``(vertices (V, 3) object coordinates, faces (F, 3), colours (V, 3)
+            display values)`` written as the mesh instead of the density's marching-cubes
+            surface (``osn.export.from_run.view_mesh``).
     """
 
     id: int
@@ -74,6 +78,7 @@ class ExportObject:
     density_raw: np.ndarray | None = None
     colour_raw: np.ndarray | None = None
     colour_planes: np.ndarray | None = None
+    surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def voxel_size(self) -> np.ndarray:
         """``(3,)`` spacing of the samples along x, y, z in object units."""
@@ -360,7 +365,7 @@ def _write_object(tmp: Path, o: ExportObject) -> dict[str, Any]:
     if o.colour_planes is not None:
         planes_rel = f"objects/{o.id}_planes.npz"
         D.atomic_write_bytes(tmp / planes_rel, _npz_bytes({"planes": np.asarray(o.colour_planes, np.float32)}))
-    mesh = object_mesh(o)
+    mesh = o.surface if o.surface is not None else object_mesh(o)
     mesh_rel = None
     if mesh is not None:
         mesh_rel = f"objects/{o.id}.ply"
@@ -377,6 +382,7 @@ def _write_object(tmp: Path, o: ExportObject) -> dict[str, Any]:
         "mesh": mesh_rel,
         "mesh_level": o.surface_level(),
         "mesh_faces": 0 if mesh is None else int(len(mesh[1])),
+        "mesh_source": "training views" if o.surface is not None else "marching cubes",
         "field": _field_entry(o, planes_rel),
     }
 
@@ -431,7 +437,8 @@ def _manifest(scene: ExportScene, objects: list[dict], net: dict | None, files: 
             "field": "object.field: density = softplus(grid + offset) inside bbox, 0 outside; display colour = "
                      "sigmoid(color grid + planes), trilinear between nodes; planes[i, v, u] bilinear at box-normalised "
                      "-1 + 2 (u, v) / (P - 1) along axes[i] (the learned field itself)",
-            "mesh": "binary PLY in object coordinates, uchar sRGB vertex colours",
+            "mesh": "binary PLY in object coordinates, uchar sRGB vertex colours; mesh_source: the marching-cubes "
+                    "surface at mesh_level, or the object's training-view renders fused (depth and colour)",
             "blender_frame": "frame = 1 + time index",
         },
         "timestamps": np.asarray(scene.timestamps, float).tolist(),

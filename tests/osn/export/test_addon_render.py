@@ -15,6 +15,8 @@ import pytest
 
 #: Lowest PSNR (dB) of the add-on's volume render against OSN's render of the same view.
 MIN_PSNR = 35.0
+#: Lowest PSNR (dB) of its meshes (fused from the training views), from the training camera.
+MIN_MESH_PSNR = 14.0
 
 
 @pytest.fixture(scope="module")
@@ -46,19 +48,21 @@ def test_volume_render_matches_osn_from_training_and_test_cameras(tiny_export, t
     assert data.objects[data.anchor_index].field.planes is not None  # the anchor's colour planes are exported
     sample = data.samples[0]
     views = [View("train", 1), View(0, 2, list(sample))]
-    out = render_export(export, views, parts=("volumes",), samples=1)
+    out = render_export(export, views, parts=("volumes", "meshes"), samples=1)
     run = load_run(run_dir)
     rig = rig_cameras(tiny_dataset, data.num_frames)
-    got = []
-    for v, img, sbar in zip(views, out["images"]["volumes"], out["sbar"]["volumes"]):
-        cam = None if v.camera == "train" else rig[int(v.camera), v.time]
-        ref = run.render_view(cam, v.time, np.asarray(sbar))["rgb"]
-        assert ref.mean() > 0.05  # something is seen
-        got.append(float(psnr(img, ref)))
-    print(f"PSNR against OSN: training camera {got[0]:.2f} dB, test camera {got[1]:.2f} dB; "
-          f"render seconds {out['seconds']['volumes']}")
+    got: dict[str, list[float]] = {"volumes": [], "meshes": []}
+    for part in got:
+        for v, img, sbar in zip(views, out["images"][part], out["sbar"][part]):
+            cam = None if v.camera == "train" else rig[int(v.camera), v.time]
+            ref = run.render_view(cam, v.time, np.asarray(sbar))["rgb"]
+            assert ref.mean() > 0.05  # something is seen
+            got[part].append(float(psnr(img, ref)))
+    print(f"PSNR against OSN (training camera, test camera): {got}; render seconds {out['seconds']}")
     np.testing.assert_allclose(out["sbar"]["volumes"][1], sample, rtol=1e-9)  # the configuration rendered
-    assert min(got) >= MIN_PSNR, got
+    assert min(got["volumes"]) >= MIN_PSNR, got
+    assert data.manifest["objects"][0]["mesh_source"] == "training views"
+    assert got["meshes"][0] >= MIN_MESH_PSNR, got
 
 
 def _field_on_nodes(data, i: int, scale: int = 1):

@@ -417,7 +417,8 @@ def test_trajectories_equal_exported_poses(blender, exported) -> None:
 
 def test_objects_are_hidden_at_frames_without_a_pose(blender, exported) -> None:
     """An object that left the view at some frames is hidden there, not held at its last pose;
-    meshes are a viewport preview, never rendered ([hide_render, hide_viewport])."""
+    meshes are a viewport preview, kept out of renders ([hide_render, hide_viewport]) until
+    ``render_meshes`` lets them in, hidden where their object has no pose."""
     res, _ = blender
     scene, _, _ = exported
     for frame, hidden in res["hidden"].items():
@@ -428,6 +429,8 @@ def test_objects_are_hidden_at_frames_without_a_pose(blender, exported) -> None:
             for n in parts:
                 absent = t not in o.frames
                 assert hidden[n] == ([True, absent] if n.endswith(" mesh") else [absent, absent]), (n, frame)
+                if n.endswith(" mesh"):
+                    assert res["hidden_meshes_rendered"][frame][n] == [absent, absent], (n, frame)
     assert any(any(v[0] for v in h.values()) for h in res["hidden"].values())  # the case is exercised
 
 
@@ -636,6 +639,12 @@ def _blender_main(args: dict) -> None:
     for frame in range(1, 5):
         scene.frame_set(frame)
         res["hidden"][frame] = {o.name: [o.hide_render, o.hide_viewport] for o in coll.objects if o.type in ("VOLUME", "MESH")}
+    sb.render_meshes(coll)
+    res["hidden_meshes_rendered"] = {}
+    for frame in range(1, 5):
+        scene.frame_set(frame)
+        res["hidden_meshes_rendered"][frame] = {o.name: [o.hide_render, o.hide_viewport] for o in coll.objects if o.type == "MESH"}
+    sb.render_meshes(coll, on=False)
 
     res["validity"] = []
     for cfg in (CONFIG_A, CONFIG_B, CONFIG_INVALID, [1.0, 0.9, 1.1]):
