@@ -18,7 +18,9 @@ def add_export_parser(sub: argparse._SubParsersAction) -> None:
     p = subcommand(
         sub, "export", _cmd_export, "export a trained run for Blender (OpenVDB volumes, meshes, trajectories, scale network)",
         description="Write a versioned export directory (docs/export-and-addon.md) that the Blender add-on imports: "
-        "per object an OpenVDB volume and a marching-cubes PLY, per-frame poses and cameras, the scale network and "
+        "per object its field (density and colour, which the add-on renders as a volume matching OSN's own render) and "
+        "an OpenVDB volume, a coloured PLY mesh built from its renders in the training views (a viewport preview), "
+        "per-frame poses and cameras, the scale network and "
         "its learned valid intervals, and optionally sampled valid configurations and (with --data) the dataset's "
         "test cameras. Written atomically.",
     )
