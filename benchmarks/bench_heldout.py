@@ -93,8 +93,18 @@ def run_one(seed: int, source: str, root: Path, config: str | None, label: str, 
         time.sleep(30)
     (work / "bench.log").write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:
-        return {"seed": seed, "source": source, "error": (proc.stderr.strip().splitlines() or ["?"])[-1],
-                "seconds": time.perf_counter() - t0}
+        error = (proc.stderr.strip().splitlines() or ["?"])[-1]
+        trained = work / ".done" / "train.json"
+        if "accepts none" in error and trained.is_file():
+            # Training finished but learned an empty valid set: a result, not a crash. Its IoU is the
+            # training monitor's against the exact region (0 when the set is empty); with no
+            # sample there is no best of N.
+            t = json.loads(trained.read_text())
+            return {"seed": seed, "source": source, "iou": t["summary"]["iou"], "recall": 0.0, "precision": None,
+                    "best_minus_highest_db": None, "scale_error": None, "train_psnr": t["summary"]["psnr"],
+                    "train_seconds": t["seconds"], "note": "empty learned set: " + error.removeprefix("osn: error: "),
+                    "seconds": time.perf_counter() - t0}
+        return {"seed": seed, "source": source, "error": error, "seconds": time.perf_counter() - t0}
     return {"seed": seed, "source": source, **figures(work), "seconds": time.perf_counter() - t0}
 
 
@@ -115,10 +125,12 @@ def figures(work: Path) -> dict[str, Any]:
 
 
 def _mean_std(xs: list[float], fmt: str) -> str:
+    """``mean ± std`` (sample standard deviation; a single value alone)."""
     if not xs:
         return "-"
-    sd = statistics.stdev(xs) if len(xs) > 1 else 0.0
-    return f"{fmt.format(statistics.fmean(xs))} ± {fmt.format(sd)}"
+    if len(xs) == 1:
+        return fmt.format(xs[0])
+    return f"{fmt.format(statistics.fmean(xs))} ± {fmt.replace('+', '').format(statistics.stdev(xs))}"
 
 
 FIELDS = (("iou", "{:.3f}"), ("precision", "{:.3f}"), ("recall", "{:.3f}"), ("best_minus_highest_db", "{:+.2f}"),
@@ -129,17 +141,22 @@ HEADERS = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scal
 
 def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
     ok = [r for r in runs if "error" not in r]
-    per_seed = [[str(r["seed"]), r["source"], *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS)]
-                for r in sorted(ok, key=lambda r: (r["seed"], r["source"]))]
-    per_seed += [[str(r["seed"]), r["source"], f"failed: {r['error']}", *["-"] * (len(FIELDS) - 1)] for r in runs if "error" in r]
+    per_seed = [[str(r["seed"]), r["source"], *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
+                 r.get("note", "")] for r in sorted(ok, key=lambda r: (r["seed"], r["source"]))]
+    per_seed += [[str(r["seed"]), r["source"], *["-"] * len(FIELDS), f"failed: {r['error']}"] for r in runs if "error" in r]
     pooled = []
     for source in SOURCES:
         rs = [r for r in ok if r["source"] == source]
         if rs:
-            pooled.append([label, source, str(len(rs)), *(_mean_std([r[k] for r in rs if r.get(k) is not None], fmt) for k, fmt in FIELDS),
-                           f"{min(r['iou'] for r in rs):.3f}"])
+            # A figure a run could not give (no best of N from an empty learned set) is left out of
+            # its mean; the count beside it says how many runs it averages.
+            cells = []
+            for k, fmt in FIELDS:
+                xs = [r[k] for r in rs if r.get(k) is not None]
+                cells.append(_mean_std(xs, fmt) + (f" ({len(xs)} of {len(rs)})" if len(xs) < len(rs) else ""))
+            pooled.append([label, source, str(len(rs)), *cells, f"{min(r['iou'] for r in rs):.3f}"])
     return {"heldout_pooled": table(["config", "inputs", "seeds", *HEADERS, "worst seed's IoU"], pooled),
-            "heldout_per_seed": table(["seed", "inputs", *HEADERS], per_seed)}
+            "heldout_per_seed": table(["seed", "inputs", *HEADERS, "note"], per_seed)}
 
 
 def main() -> int:
