@@ -65,6 +65,9 @@ def provenance(doc: dict) -> str:
     took = f", {wall:.0f} s from start to table" if isinstance(wall, (int, float)) else ""
     load = (doc.get("data") or {}).get("load_average_at_end")
     took += f" (load average {load:.1f} at the end)" if isinstance(load, (int, float)) else ""
+    # What else ran, when the figures were not taken on a quiet machine (a results JSON's own words).
+    conditions = (doc.get("data") or {}).get("conditions")
+    took += f"; {conditions}" if isinstance(conditions, str) and conditions else ""
     return (f"*`{doc['command']}` on commit {commit}, {m['cpu']} ({m['cores']} cores), "
             f"{doc['time'][:10]}{took}.*")
 
