@@ -28,7 +28,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _load_spec(args: argparse.Namespace):
-    from benchgen.scene.procedural import random_spec
+    from benchgen.scene.procedural import parse_seeds, random_spec
     from benchgen.scene.spec import load_preset, load_spec
 
     if sum(x is not None for x in (args.preset, args.spec, args.random)) != 1:
@@ -36,7 +36,13 @@ def _load_spec(args: argparse.Namespace):
     if args.protocol is not None and args.random is None:
         raise UserError("--protocol chooses the rig of a --random scene; a preset or spec file sets its own")
     if args.random is not None:
-        spec = random_spec(args.random, args.protocol or "orbit")
+        try:
+            seeds = parse_seeds(args.random)
+        except ValueError as e:
+            raise UserError(f"--random: {e}") from None
+        if len(seeds) != 1:
+            raise UserError(f"--random: generate builds one scene; got {len(seeds)} seeds (benchgen suite --random A:B builds several)")
+        spec = random_spec(seeds[0], args.protocol or "orbit")
     else:
         spec = load_preset(args.preset) if args.preset else load_spec(args.spec)
     return spec.with_overrides(resolution=args.resolution, samples=args.cycles_samples, configs=args.configs, seed=args.seed)
@@ -130,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_argument_group("scene (one of)")
     src.add_argument("--preset", help="a built-in spec (see 'benchgen presets')")
     src.add_argument("--spec", help="a YAML spec file (docs/benchgen.md)")
-    src.add_argument("--random", type=int, default=None, metavar="SEED",
+    src.add_argument("--random", default=None, metavar="SEED",
                      help="the procedural family's scene for SEED (2-6 random movers, random room, textures, motions and "
                      "rig; 64 px, G=20, 30 test views unless overridden; seeds 0-999: development split, 1000-1999: "
                      "held-out split, docs/benchgen.md). The spec is written to OUT/spec.yaml, so --spec reruns it")

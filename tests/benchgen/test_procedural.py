@@ -96,6 +96,8 @@ def test_lathe_parts_are_checked_and_their_solid_matches_their_mesh():
 def test_the_command_line_refuses_mixed_sources(tmp_path, capsys):
     for args in (["generate", "--random", "1", "--preset", "tiny", "--out", str(tmp_path / "a")],
                  ["generate", "--preset", "tiny", "--protocol", "stereo", "--out", str(tmp_path / "a")],
+                 ["generate", "--random", "1:3", "--out", str(tmp_path / "a")],
+                 ["generate", "--random", "x", "--out", str(tmp_path / "a")],
                  ["suite", "--random", "5:2", "--out", str(tmp_path / "b")],
                  ["suite", "--random", "1:2", "--presets", "gnome-house", "--out", str(tmp_path / "b")]):
         assert cli_main(args) == 2
