@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -121,7 +122,14 @@ def figures(work: Path) -> dict[str, Any]:
         "scale_error": statistics.fmean(errors) if errors else None,
         "train_psnr": stages["train"]["summary"]["psnr"], "train_seconds": stages["train"]["seconds"],
         "stage_seconds": {k: round(r["seconds"]) for k, r in stages.items()},
+        **({} if _measured(m["valid_set"]["iou"]) else
+           {"note": f"IoU not measured: no point of the exact region in the learned scale box "
+                    f"({m['extra'].get('gt_outside_scale_box', '?')} ground truths outside it)"}),
     }
+
+
+def _measured(x: Any) -> bool:
+    return x is not None and math.isfinite(x)
 
 
 def _mean_std(xs: list[float], fmt: str) -> str:
@@ -152,9 +160,12 @@ def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
             # its mean; the count beside it says how many runs it averages.
             cells = []
             for k, fmt in FIELDS:
-                xs = [r[k] for r in rs if r.get(k) is not None]
+                # NaN: not measured (the valid-set accuracy's rule when no point of the exact
+                # region fell in the scale box the run learned in), left out like None.
+                xs = [r[k] for r in rs if _measured(r.get(k))]
                 cells.append(_mean_std(xs, fmt) + (f" ({len(xs)} of {len(rs)})" if len(xs) < len(rs) else ""))
-            pooled.append([label, source, str(len(rs)), *cells, f"{min(r['iou'] for r in rs):.3f}"])
+            ious = [r["iou"] for r in rs if _measured(r.get("iou"))]
+            pooled.append([label, source, str(len(rs)), *cells, f"{min(ious):.3f}" if ious else "-"])
     return {"heldout_pooled": table(["config", "inputs", "seeds", *HEADERS, "worst seed's IoU"], pooled),
             "heldout_per_seed": table(["seed", "inputs", *HEADERS, "note"], per_seed)}
 
