@@ -45,6 +45,13 @@ SIZE_RANGE = (0.15, 1.5)
 #: at 64 px); it must be in view in at least ``MIN_VISIBLE_SHARE`` of the training frames.
 MIN_EXTENT = 1.0 / 8
 MIN_VISIBLE_SHARE = 0.6
+#: And its surface, projected without occlusion onto the family's 64 x 64 grid, covers at least
+#: this many pixels in as many frames: twice the 16 pixels below which ``osn oracle`` refuses an
+#: object in every frame, so that movers passing behind one another keep enough of them.
+MIN_PIXELS = 32
+#: The grid the pixel count uses, whatever the dataset's resolution (a seed's scene must not
+#: depend on it).
+GRID = 64
 #: Draws tried before a seed is reported as unusable (none has needed more than a few dozen).
 MAX_ATTEMPTS = 500
 #: Draws of one mover before the scene is drawn anew with it where it collides.
@@ -333,6 +340,30 @@ def _mover(rng: np.random.Generator, i: int, on_floor: bool, rig: dict, mids: li
     return obj, base + [0, 0, half]
 
 
+def _surface(parts: list[dict]) -> np.ndarray:
+    """Object-frame points on the parts' surfaces: vertices and seeded samples (deterministic)."""
+    import trimesh
+
+    mesh = trimesh.util.concatenate([_part_mesh(p) for p in parts])
+    samples, _ = trimesh.sample.sample_surface(mesh, 2000, seed=0)
+    return np.concatenate([mesh.vertices, samples])
+
+
+def _covered(points: np.ndarray, motion: list[dict], times: np.ndarray, cameras: list[np.ndarray], K: np.ndarray) -> int:
+    """In how many training frames (one camera per time) object-frame ``points`` under ``motion``
+    cover at least ``MIN_PIXELS`` distinct pixels of the ``GRID`` x ``GRID`` image, in front of the
+    camera, ignoring occlusion."""
+    poses = interpolate_poses([Keyframe(k["t"], k["location"], k["rotation"]) for k in motion], times)
+    return sum(_pixel_count(points @ T[:3, :3].T + T[:3, 3], c2w, K) >= MIN_PIXELS for T, c2w in zip(poses, cameras))
+
+
+def _pixel_count(world: np.ndarray, c2w: np.ndarray, K: np.ndarray) -> int:
+    uv, z = project(world, K, c2w)
+    ok = (z > 0) & np.all((uv >= 0) & (uv < GRID), axis=1)
+    pix = np.floor(uv[ok]).astype(np.int64)
+    return len(np.unique(pix[:, 1] * GRID + pix[:, 0]))
+
+
 def _in_view(path: np.ndarray, radius: float, cameras: list[np.ndarray], K: np.ndarray, width: int) -> int:
     """How many of the training ``cameras`` (one per time of ``path (T, 3)``) see a sphere of
     ``radius`` at the path's point as in view (module docstring: centre inside the image, in front,
@@ -356,7 +387,7 @@ def _draw(rng: np.random.Generator, seed: int, protocol: str, n: int) -> dict:
     cams = [rig_cameras(rig_spec, t) for t in range(rig_spec.times)]
     eyes = np.concatenate([c[:, :3, 3] for c in cams])
     train = [cams[t][rig_spec.train_view(t)] for t in range(rig_spec.times)]
-    K = intrinsics_from_fov(rig_spec.fov, 64, 64)
+    K = intrinsics_from_fov(rig_spec.fov, GRID, GRID)
     reach = np.abs(eyes[:, :2]).max(axis=0) + 0.6  # the room holds every camera with a margin
     room_size = np.array([max(_u(rng, 5.5, 8), 2 * reach[0]), max(_u(rng, 5.5, 8), 2 * reach[1]), _u(rng, 2.6, 3.4)])
     objects: list[dict] = []
@@ -371,7 +402,8 @@ def _draw(rng: np.random.Generator, seed: int, protocol: str, n: int) -> dict:
             clear = (all(np.linalg.norm(path - p, axis=1).min() > r + q + 0.01 for p, q in swept)
                      and np.linalg.norm(eyes[:, None] - path[None], axis=2).min() > r + 0.05
                      and np.all(np.abs(path[:, :2]) + r < room_size[:2] / 2 - 0.05) and np.all(path[:, 2] + r < room_size[2])
-                     and _in_view(path, r, train, K, 64) >= MIN_VISIBLE_SHARE * len(train))
+                     and _in_view(path, r, train, K, GRID) >= MIN_VISIBLE_SHARE * len(train)
+                     and _covered(_surface(obj["parts"]), obj["motion"], times, train, K) >= MIN_VISIBLE_SHARE * len(train))
             if clear:
                 break
         objects.append(obj)
@@ -398,6 +430,12 @@ def _family_problem(spec: SceneSpec, on_floor: list[bool]) -> str | None:
         seen = _in_view(path, r_obj, cameras, K, scene.width)
         if seen < MIN_VISIBLE_SHARE * len(frames):
             return f"{geom.name} in view in {seen} of {len(frames)} training frames"
+        grid_K = intrinsics_from_fov(spec.rig.fov, GRID, GRID)
+        poses = [scene.objects[k].poses[f.time_index] for f in frames]
+        covered = sum(_pixel_count(geom.probe_points @ T[:3, :3].T + T[:3, 3], f.camera_to_world, grid_K) >= MIN_PIXELS
+                      for T, f in zip(poses, frames))
+        if covered < MIN_VISIBLE_SHARE * len(frames):
+            return f"{geom.name} covers {MIN_PIXELS} pixels in {covered} of {len(frames)} training frames"
         row = []
         for f, centre in zip(frames, path):
             (uv,), (z,) = project(centre[None], K, f.camera_to_world)
