@@ -97,16 +97,30 @@ def run_one(seed: int, source: str, root: Path, config: str | None, label: str, 
         error = (proc.stderr.strip().splitlines() or ["?"])[-1]
         trained = work / ".done" / "train.json"
         if "accepts none" in error and trained.is_file():
-            # Training finished but learned an empty valid set: a result, not a crash. Its IoU is the
-            # training monitor's against the exact region (0 when the set is empty); with no
+            # Training finished but the sampler's uniform draws found no valid configuration: the
+            # learned set is empty or too small for them. A result, not a crash: the valid-set
+            # figures are the training monitor's last (against the same exact region); with no
             # sample there is no best of N.
             t = json.loads(trained.read_text())
-            return {"seed": seed, "source": source, "iou": t["summary"]["iou"], "recall": 0.0, "precision": None,
+            last = _last_monitor(work / "run" / "metrics.jsonl")
+            return {"seed": seed, "source": source, "iou": last.get("iou", t["summary"]["iou"]),
+                    "precision": last.get("precision"), "recall": last.get("recall"),
                     "best_minus_highest_db": None, "scale_error": None, "train_psnr": t["summary"]["psnr"],
-                    "train_seconds": t["seconds"], "note": "empty learned set: " + error.removeprefix("osn: error: "),
-                    "seconds": time.perf_counter() - t0}
+                    "train_seconds": t["seconds"], "seconds": time.perf_counter() - t0,
+                    "note": "no sample (valid-set figures from the training monitor): " + error.removeprefix("osn: error: ")}
         return {"seed": seed, "source": source, "error": error, "seconds": time.perf_counter() - t0}
     return {"seed": seed, "source": source, **figures(work), "seconds": time.perf_counter() - t0}
+
+
+def _last_monitor(path: Path) -> dict[str, Any]:
+    """The last record of a run's ``metrics.jsonl`` that holds valid-set figures ({} if none)."""
+    last: dict[str, Any] = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            rec = json.loads(line)
+            if "iou" in rec:
+                last = rec
+    return last
 
 
 def figures(work: Path) -> dict[str, Any]:
