@@ -122,3 +122,13 @@ def test_a_random_scene_renders_verifies_and_reruns_from_its_spec(tmp_path, caps
     assert dump_spec(load_spec(data / "spec.yaml")) == (data / "spec.yaml").read_text()
     assert cli_main(["generate", "--spec", str(data / "spec.yaml"), "--out", str(data), "--quiet"]) == 0
     assert "rendered 0 frames" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("protocol", ["stereo", "multi-camera"])
+def test_random_scenes_of_the_other_protocols_render_and_verify(tmp_path, protocol):
+    out = tmp_path / protocol
+    args = ["generate", "--random", "5", "--protocol", protocol, "--out", str(out), "--resolution", "32", "--configs", "2", "--quiet"]
+    assert cli_main(args) == 0
+    assert D.load_verification(out)["passed"]
+    assert load_spec(out / "spec.yaml").rig.protocol == protocol
