@@ -293,9 +293,15 @@ def _motion(rng: np.random.Generator, start: np.ndarray, end: np.ndarray, on_flo
              "rotation": [round(float(x), 2) for x in k["rotation"]]} for k in keys]
 
 
-def _sphere(parts: list[dict]) -> tuple[np.ndarray, float]:
-    """Bounding sphere (centre in the object frame, radius) of the tessellated parts."""
-    verts = np.concatenate([_part_mesh(p).vertices for p in parts])
+def _mesh(parts: list[dict]):
+    """The tessellated parts as one mesh (the object's render mesh, as ``geometry`` builds it)."""
+    import trimesh
+
+    return trimesh.util.concatenate([_part_mesh(p) for p in parts])
+
+
+def _sphere(verts: np.ndarray) -> tuple[np.ndarray, float]:
+    """Bounding sphere (centre in the object frame, radius) of object-frame vertices."""
     c = (verts.min(axis=0) + verts.max(axis=0)) / 2
     return c, float(np.linalg.norm(verts - c, axis=1).max())
 
@@ -340,11 +346,10 @@ def _mover(rng: np.random.Generator, i: int, on_floor: bool, rig: dict, mids: li
     return obj, base + [0, 0, half]
 
 
-def _surface(parts: list[dict]) -> np.ndarray:
-    """Object-frame points on the parts' surfaces: vertices and seeded samples (deterministic)."""
+def _surface(mesh) -> np.ndarray:
+    """Object-frame points on a mover's surface: vertices and seeded samples (deterministic)."""
     import trimesh
 
-    mesh = trimesh.util.concatenate([_part_mesh(p) for p in parts])
     samples, _ = trimesh.sample.sample_surface(mesh, 2000, seed=0)
     return np.concatenate([mesh.vertices, samples])
 
@@ -397,13 +402,14 @@ def _draw(rng: np.random.Generator, seed: int, protocol: str, n: int) -> dict:
     for i in range(n):
         for _ in range(MOVER_TRIES):
             obj, mid = _mover(rng, i, i in floor_movers, rig, mids)
-            c, r = _sphere(obj["parts"])
+            mesh = _mesh(obj["parts"])  # once per draw: the sphere and the surface both use it
+            c, r = _sphere(mesh.vertices)
             path = _centres(obj["motion"], c, times)
             clear = (all(np.linalg.norm(path - p, axis=1).min() > r + q + 0.01 for p, q in swept)
                      and np.linalg.norm(eyes[:, None] - path[None], axis=2).min() > r + 0.05
                      and np.all(np.abs(path[:, :2]) + r < room_size[:2] / 2 - 0.05) and np.all(path[:, 2] + r < room_size[2])
                      and _in_view(path, r, train, K, GRID) >= MIN_VISIBLE_SHARE * len(train)
-                     and _covered(_surface(obj["parts"]), obj["motion"], times, train, K) >= MIN_VISIBLE_SHARE * len(train))
+                     and _covered(_surface(mesh), obj["motion"], times, train, K) >= MIN_VISIBLE_SHARE * len(train))
             if clear:
                 break
         objects.append(obj)

@@ -32,7 +32,7 @@ def test_a_seed_gives_the_same_scene_and_seeds_differ(family):
 
 def test_every_scene_is_plausible_in_view_and_has_the_cases_the_family_promises(family):
     counts = []
-    floor_movers = crossing_scenes = 0
+    floor_movers = 0
     types = set()
     for seed, spec in family.items():
         built = build_scene(spec)
@@ -49,9 +49,10 @@ def test_every_scene_is_plausible_in_view_and_has_the_cases_the_family_promises(
                 poses = built.scene.objects[[x.name for x in built.scene.objects].index(o.name)].poses
                 lows = [(g.mesh.vertices @ T[:3, :3].T + T[:3, 3])[:, 2].min() for T in poses]
                 assert np.allclose(lows, 0.0, atol=1e-9), (seed, o.name)
-        crossing_scenes += P._family_problem(spec, [True]) is None
     assert min(counts) >= P.MOVERS[0] and max(counts) <= P.MOVERS[1] and len(set(counts)) >= 3
-    assert floor_movers >= len(family) and crossing_scenes == len(family)
+    # A pair passing in front of another in every scene: _family_problem returned None above, and it
+    # refuses a scene without one (test_a_draw_without_a_floor_mover_or_a_crossing_is_refused).
+    assert floor_movers >= len(family)
     assert {"lathe", "torus", "box", "cylinder"} <= types
 
 
@@ -113,11 +114,16 @@ def test_a_random_scene_renders_verifies_and_reruns_from_its_spec(tmp_path, caps
     data = out / "random-4"
     scene = D.load_scene(data)
     assert D.load_verification(data)["passed"]
-    # Every mover is seen in the training video, most of the time.
+    # Every mover is seen in the training video, most of the time, and covers in some frame what
+    # osn oracle needs (16 pixels at 64 px: 4 at this 32 px).
     seen = np.zeros(scene.num_objects)
+    most = np.zeros(scene.num_objects)
     for f in scene.train_frames:
-        seen[np.unique(D.read_ids(D.frame_paths(data, f.name).ids))] += 1
+        counts = np.bincount(D.read_ids(D.frame_paths(data, f.name).ids).ravel(), minlength=256)[: scene.num_objects]
+        seen += counts > 0
+        most = np.maximum(most, counts)
     assert np.all(seen[1:] >= 0.5 * len(scene.train_frames)), seen
+    assert np.all(most[1:] >= 4), most
     # The dataset's spec.yaml is the scene: rerunning from it renders nothing new.
     assert dump_spec(load_spec(data / "spec.yaml")) == (data / "spec.yaml").read_text()
     assert cli_main(["generate", "--spec", str(data / "spec.yaml"), "--out", str(data), "--quiet"]) == 0
