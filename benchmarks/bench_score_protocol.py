@@ -8,12 +8,13 @@ On one dataset and one prediction directory, one after the other in this process
   own thread count beside the reading workers (``bestofn.EXACT_FLOAT32`` and
   ``bestofn.THREADS_BESIDE_WORKERS`` False), and everything ``before`` does;
 * ``before``: stored masks and exact float32 products, but every candidate file decoded and
-  checked in the pass (``bestofn.COLOUR_ONLY`` False), the ground truth read through the
-  dataset's reader (``truth.DIRECT_PNG`` False) and the matched metrics computed in this process
-  (``scorer.METRICS_IN_WORKERS`` False);
+  checked in the pass (``bestofn.COLOUR_ONLY`` False), the colours sent from the reading workers
+  to this process, which scores them (``bestofn.SCORE_IN_WORKERS`` False), the ground truth read
+  through the dataset's reader (``truth.DIRECT_PNG`` False) and the matched metrics computed in
+  this process (``scorer.METRICS_IN_WORKERS`` False);
 * ``now``: today's path: the pass decodes the candidates' colour only (depth and ids checked up to
-  their headers), the ground truth's PNGs decoded by Pillow directly, the matched candidates'
-  metrics computed in the ``--workers`` processes;
+  their headers) and each worker scores the chunks it reads, the ground truth's PNGs decoded by
+  Pillow directly, the matched candidates' metrics computed in the ``--workers`` processes;
 * ``benchgen score``: the command itself on the same inputs (it also hashes every file it reads
   for the report's provenance and checks the dataset's verification).
 
@@ -79,7 +80,7 @@ def switches() -> list[tuple[object, str]]:
     """The module switches of today's speed-ups (True: today's path)."""
     from benchgen.score import bestofn, scorer, truth
 
-    return [(bestofn, "COLOUR_ONLY"), (truth, "DIRECT_PNG"), (scorer, "METRICS_IN_WORKERS")]
+    return [(bestofn, "COLOUR_ONLY"), (bestofn, "SCORE_IN_WORKERS"), (truth, "DIRECT_PNG"), (scorer, "METRICS_IN_WORKERS")]
 
 
 def run_path(dataset: Path, pred: Path, out: Path, views: int, workers: int, lpips: bool, stored: bool,
@@ -259,8 +260,9 @@ def main() -> int:
     columns = ["path", "ground truth (s)", "candidate pass (s)", "matched metrics (s)", "digests (s)", "total wall (s)",
                "CPU (s)", "speed-up (wall)", "speed-up (CPU)", "load average at start / end"]
     rows = [row("masks computed, float64 pass on torch's threads, as before", runs["on the fly"])] if "on the fly" in runs else []
-    rows += [row("before: every candidate file decoded in the pass, ground truth through imageio, metrics in this process", old),
-             row("now: colour only in the pass, ground truth through Pillow, metrics in the workers", new),
+    rows += [row("before: every candidate file decoded in the pass and scored in this process, ground truth through imageio, "
+                 "metrics in this process", old),
+             row("now: colour only in the pass, scored where it is read, ground truth through Pillow, metrics in the workers", new),
              row("`benchgen score` (with provenance digests)", cli)]
     nv = args.n * views / 1e3
     parts = [["read and check one candidate's files in full (colour PNG, depth EXR, id PNG; before)", f"{costs['read']:.2f}",

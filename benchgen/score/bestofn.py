@@ -8,10 +8,11 @@ float64 every product and sum is an exact integer while it stays below 2^53, i.e
 ~700k pixels: the errors are exact, whatever the BLAS, the chunking or the number of workers.
 Float candidates (in-memory renders) are scaled to the same units and are accurate to float64.
 
-Workers only read and check candidates (the slow part: decoding each view's colour; depth and ids
-are checked up to their headers, and decoded only for matched candidates); the parent scores
-each chunk while the workers read the next ones. Memory holds the ground truth, a bounded number
-of chunks in flight and the ``(N, G)`` mean-PSNR matrix; it does not grow with N beyond that matrix.
+Each worker reads, checks and scores whole chunks (reading is the slow part: decoding each view's
+colour; depth and ids are checked up to their headers, and decoded only for matched candidates)
+and returns only the chunk's ``(B, G)`` means: the colours never cross a process boundary, and no
+process waits on another's share. Memory holds the ground truth (shared by the forked workers),
+one chunk per worker and the ``(N, G)`` mean-PSNR matrix; it does not grow with N beyond that matrix.
 """
 
 from __future__ import annotations
@@ -148,10 +149,24 @@ def _read_chunk(start: int, stop: int) -> list[np.ndarray]:
     """Colours of candidates ``start..stop-1``, read and checked (``load_rgb``: depth and ids up to
     their headers; a source without it: each candidate whole, depth and ids dropped).
 
-    Runs in worker processes: no torch here."""
+    Runs in worker processes."""
     source: CandidateSource = _JOB["source"]
     load_rgb = getattr(source, "load_rgb", None) if COLOUR_ONLY else None
     return [load_rgb(n) if load_rgb else source.load(n).rgb for n in range(start, stop)]
+
+
+#: Score each chunk in the worker that read it (:func:`_score_chunk`); False: workers return the
+#: chunk's colours and this process scores them while they read the next ones, as before
+#: (``benchmarks/bench_score_protocol.py`` times both). The matrix is the same, bit for bit.
+SCORE_IN_WORKERS = True
+
+
+def _score_chunk(start: int, stop: int) -> np.ndarray:
+    """Mean PSNR ``(stop - start, G)`` of candidates ``start..stop-1``, read, checked and scored in
+    this process (torch on one thread in a worker: the workers share the cores)."""
+    if os.getpid() != _JOB["parent"]:
+        torch.set_num_threads(1)
+    return M.best_of_n(view_psnr(_read_chunk(start, stop), _JOB["truth"], _JOB["energy"])).mean_scores
 
 
 def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progress: bool = False) -> np.ndarray:
@@ -169,13 +184,15 @@ def psnr_matrix(truth: Truth, source: CandidateSource, workers: int = 1, progres
     out = np.empty((N, truth.num_configurations))
     chunks = [(i, min(i + size, N)) for i in range(0, N, size)]
     energy = truth_energy(truth)
-    _JOB.update(source=source)
+    in_workers = SCORE_IN_WORKERS and workers > 1
+    _JOB.update(source=source, truth=truth, energy=energy, parent=os.getpid())
     threads = torch.get_num_threads()
     try:
-        torch.set_num_threads(pass_threads(workers))
+        if not in_workers:
+            torch.set_num_threads(pass_threads(workers))
         with tqdm(total=N, desc="candidates", unit="cand", disable=not progress, dynamic_ncols=True) as bar:
-            for (a, b), rgbs in zip(chunks, ordered_map(_read_chunk, chunks, workers)):
-                out[a:b] = M.best_of_n(view_psnr(rgbs, truth, energy)).mean_scores
+            for (a, b), done in zip(chunks, ordered_map(_score_chunk if in_workers else _read_chunk, chunks, workers)):
+                out[a:b] = done if in_workers else M.best_of_n(view_psnr(done, truth, energy)).mean_scores
                 bar.update(b - a)
     finally:
         _JOB.clear()

@@ -383,7 +383,7 @@ def test_fast_paths_give_the_previous_metrics(tiny_dataset, tmp_path, monkeypatc
     matrix, rows = run_score(2)
     assert torch.get_num_threads() > 1  # one worker runs torch on its threads, two workers on one each
     assert run_score(1)[1] == rows
-    for module, switch in ((bestofn, "COLOUR_ONLY"), (T, "DIRECT_PNG"), (scorer, "METRICS_IN_WORKERS")):
+    for module, switch in ((bestofn, "COLOUR_ONLY"), (bestofn, "SCORE_IN_WORKERS"), (T, "DIRECT_PNG"), (scorer, "METRICS_IN_WORKERS")):
         monkeypatch.setattr(module, switch, False)
     old_matrix, old_rows = run_score(2)
     assert np.array_equal(matrix, old_matrix) and rows == old_rows
