@@ -32,8 +32,9 @@ from benchgen.score.truth import Truth
 #: Colour unit of the exact error: full-scale 16-bit. 8-bit values v are ``257 v`` (65535 / 255).
 UNIT = 65535.0
 _FROM_8BIT = 257.0
-#: Candidate colour (bytes, as 8-bit) per chunk: bounds the memory of the chunks in flight.
-CHUNK_BYTES = 128 * 2**20
+#: Candidate colour (bytes, as 8-bit) per chunk: bounds the memory each worker holds. Larger
+#: chunks spread each view's conversion of the ground truth to float over more candidates.
+CHUNK_BYTES = 256 * 2**20
 MAX_CHUNK = 64
 
 

@@ -168,13 +168,13 @@ def ssim_map(pred: Array, gt: Array) -> torch.Tensor:
     torch.mul(x, x, out=stack[:, 2])
     torch.mul(y, y, out=stack[:, 3])
     torch.mul(x, y, out=stack[:, 4])
-    # Separable filtering as two plain 2-D matmuls with banded matrices (exact: the zero entries
-    # add nothing); on CPU this is several times faster than a depthwise conv2d or a broadcast bmm.
+    # Separable filtering as matmuls with banded matrices (exact: the zero entries add nothing):
+    # rows by one plain 2-D matmul, columns by the transposed band from the left, batched over
+    # images (no transposed copy); on CPU several times faster than a depthwise conv2d.
     h, w = H - 2 * SSIM_RADIUS, W - 2 * SSIM_RADIUS
     n = (stack.shape[0], 5 * C)
-    f = (stack.reshape(-1, W) @ _band(W, stack.dtype, stack.device)).reshape(*n, H, w)
-    f = f.transpose(-1, -2).contiguous().reshape(-1, H) @ _band(H, f.dtype, f.device)
-    f = f.reshape(*n, w, h)  # transposed; SSIM is per pixel, so transpose back at the end
+    f = (stack.reshape(-1, W) @ _band(W, stack.dtype, stack.device)).reshape(-1, H, w)
+    f = torch.matmul(_band(H, f.dtype, f.device).T.contiguous(), f).reshape(*n, h, w)
     ux, uy, uxx, uyy, uxy = f.split(C, dim=1)
     # The formula with each product formed once and the filtered moments overwritten in place:
     # the same operations on every value in the same order (2 ux uy = 2 (ux uy) exactly).
@@ -183,7 +183,7 @@ def ssim_map(pred: Array, gt: Array) -> torch.Tensor:
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     # (2 ux uy + c1)(2 vxy + c2) / ((ux^2 + uy^2 + c1)(vx + vy + c2))
     s = mxy.mul_(2).add_(c1).mul_(vxy.mul_(2).add_(c2)).div_(mx2.add_(my2).add_(c1).mul_(vx.add_(vy).add_(c2)))
-    return s.mean(1).transpose(-1, -2).reshape(*batch, h, w)
+    return s.mean(1).reshape(*batch, h, w)
 
 
 def ssim(pred: Array, gt: Array, mask: Array | None = None) -> Array | float:

@@ -235,8 +235,10 @@ class PredictionDir:
     def __len__(self) -> int:
         return len(self.names)
 
-    def path(self, index: int, kind: str, frame: str) -> Path:
-        return self.root / self.names[index] / kind / (frame + SUFFIX[kind])
+    def path(self, index: int, kind: str, frame: str) -> str:
+        """Candidate ``index``'s file of ``kind`` for ``frame`` (a plain string: the pass builds
+        one per file, and a ``Path`` costs more than reading a small one)."""
+        return os.path.join(self.root, self.names[index], kind, frame + SUFFIX[kind])
 
     def load(self, index: int) -> Candidate:
         """Read and check candidate ``index`` whole (colour, depth, ids decoded and their values
@@ -263,7 +265,7 @@ class PredictionDir:
         folder = self.root / self.names[index] / TRAIN / "rgb"
         return np.stack([self._read(folder / (f + SUFFIX["rgb"]), "rgb") for f in self.train_frames])
 
-    def _read(self, path: Path, kind: str, decode: bool = True) -> np.ndarray | None:
+    def _read(self, path: str | Path, kind: str, decode: bool = True) -> np.ndarray | None:
         """One view's file, checked. Only a regular file of a size such an image can have is read,
         and its header's size must match the scene's before anything is decoded: a FIFO, a link
         to ``/dev/zero`` or a small file that inflates to gigabytes is one line naming it.

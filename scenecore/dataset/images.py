@@ -96,13 +96,13 @@ def pixels_problem(width: int, height: int) -> str | None:
     return None
 
 
-def _unreadable(path: Path, e: OSError) -> DatasetError:
+def _unreadable(path: str | Path, e: OSError) -> DatasetError:
     if isinstance(e, FileNotFoundError):
         return DatasetError(f"{path}: missing file")
     return DatasetError(f"{path}: cannot read ({e.strerror or e})")
 
 
-def _regular_stat(path: Path, fd: int | None = None) -> os.stat_result:
+def _regular_stat(path: str | Path, fd: int | None = None) -> os.stat_result:
     """``path``'s status (of the open ``fd`` when given), or ``DatasetError`` naming it when it is
     missing or not a regular file: a FIFO blocks its reader and a device (a link to ``/dev/zero``)
     never ends."""
@@ -117,7 +117,7 @@ def _regular_stat(path: Path, fd: int | None = None) -> os.stat_result:
     return st
 
 
-def _open_regular(path: Path) -> tuple[BinaryIO, int]:
+def _open_regular(path: str | Path) -> tuple[BinaryIO, int]:
     """``path`` opened for reading and its size; opening does not block on a FIFO, and the opened
     file itself must be regular (see :func:`_regular_stat`)."""
     try:
@@ -136,18 +136,20 @@ def open_regular(path: str | Path) -> tuple[BinaryIO, int]:
     """``path`` opened for reading and its size when opened, for readers that stream it
     (``benchgen.score.provenance`` hashes in chunks); ``DatasetError`` naming it when it is
     missing or not a regular file, without blocking on a FIFO."""
-    return _open_regular(Path(path))
+    return _open_regular(path)
 
 
 def read_regular(path: str | Path, max_bytes: int) -> bytes:
     """The bytes of ``path``, a regular file of at most ``max_bytes`` (what such a file can
-    legitimately hold), else ``DatasetError`` naming it; only the size it had when opened is read."""
-    path = Path(path)
+    legitimately hold), else ``DatasetError`` naming it; only the size it had when opened is read
+    (one call asking for a byte more: a file that grew returns it)."""
     fh, size = _open_regular(path)
     with fh:
         if size > max_bytes:
             raise DatasetError(f"{path}: {size} bytes, more than the {max_bytes} such a file can hold")
-        data = fh.read(size + 1)
+        data = os.read(fh.fileno(), size + 1)
+        while len(data) < size and (more := os.read(fh.fileno(), size + 1 - len(data))):
+            data += more
     if len(data) != size:
         raise DatasetError(f"{path}: changed size while being read")
     return data

@@ -292,3 +292,28 @@ def test_osn_evaluate_records_the_same_provenance_and_refuses_unverified_data(ti
     one_pixel(cands / "highest-score" / "highest-score" / "rgb" / f"{m['extra']['views'][0]}.png")
     r = _cli("benchgen", "score", "--check", report / "metrics.json")
     assert r.returncode == 1 and f"{cands / 'highest-score' / 'highest-score' / 'rgb'}" in r.stdout, r.stdout
+
+
+def test_file_digest_equals_sha256_at_every_size_and_refuses_a_file_that_changed(tmp_path, monkeypatch):
+    """The digest is the file's SHA-256 at sizes around the read piece; a file that grew or shrank
+    between being opened and read (simulated by the size recorded at opening) is one error naming
+    it, for the digest and for the scorer's reader alike."""
+    from scenecore.dataset import images
+
+    rng = np.random.default_rng(0)
+    for n in (0, 1, P.CHUNK - 1, P.CHUNK, P.CHUNK + 1, 2 * P.CHUNK + 7):
+        f = tmp_path / f"f{n}"
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        f.write_bytes(data)
+        assert P.file_sha256(f) == P.file_sha256(str(f)) == hashlib.sha256(data).hexdigest()
+        if n:
+            assert D.read_regular(f, n) == data
+    real = images._open_regular
+    for delta in (-1, 1):  # recorded one byte short: the file grew; one byte over: it shrank
+        monkeypatch.setattr(images, "_open_regular", lambda p, d=delta: (lambda fh, size: (fh, size + d))(*real(p)))
+        for n in (1, P.CHUNK + 1):
+            f = tmp_path / f"f{n}"
+            with pytest.raises(D.DatasetError, match=f"{f}: changed size while being read"):
+                P.file_sha256(f)
+            with pytest.raises(D.DatasetError, match=f"{f}: changed size while being read"):
+                D.read_regular(f, 10 * n)
