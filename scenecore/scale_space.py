@@ -19,7 +19,7 @@ ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
 __all__ = [
     "ACTIVATIONS", "scale_net_numpy", "denormalise", "normalise", "configured_poses", "scale_scores",
     "learned_intervals", "sample_valid_configurations", "SCENE_NEAR_FACTOR", "SCENE_FAR_FACTOR",
-    "scale_range", "scene_volume", "eq1_box",
+    "scale_range", "scene_volume", "eq1_box", "hit_and_run", "climb_into_set",
 ]
 
 #: The scene volume of Eq. 1 is ``[SCENE_NEAR_FACTOR * min_k near_k, SCENE_FAR_FACTOR * max_k
@@ -130,6 +130,98 @@ def scale_scores(
     return scale_net_numpy(layers, normalise(sbar[:, free], ranges[free]), hidden, output)
 
 
+#: Points scored along each chord of a hit-and-run or climbing step: a set a few hundredths of the
+#: box across along a chord holds several of them.
+CHORD_POINTS = 128
+#: Largest normalised coordinate: the box is [0, 1) per axis.
+_TOP = 1.0 - 1e-9
+
+
+def _chord_points(x: np.ndarray, rng: np.random.Generator, points: int) -> np.ndarray:
+    """``(m, points, D)`` points of the chords of the box [0, 1)^D through ``x (m, D)`` along random
+    directions: a stratified grid (one random offset per chord), so every point of a chord is
+    equally likely to be on it, wherever on the chord ``x`` lies."""
+    m, dim = x.shape
+    d = rng.standard_normal((m, dim))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    safe = np.where(d == 0.0, 1.0, d)  # a zero component never limits the chord
+    a, b = -x / safe, (_TOP - x) / safe
+    lo = np.where(d == 0.0, -np.inf, np.minimum(a, b)).max(1)
+    hi = np.where(d == 0.0, np.inf, np.maximum(a, b)).min(1)
+    t = lo[:, None] + (hi - lo)[:, None] * (np.arange(points) + rng.random((m, 1))) / points
+    return np.clip(x[:, None] + t[..., None] * d[:, None], 0.0, _TOP)
+
+
+def hit_and_run(
+    score: Callable[[np.ndarray], np.ndarray], start: np.ndarray, count: int, threshold: float,
+    rng: np.random.Generator, chains: int = 200, burn_in: int = 0, thin: int = 5, points: int = CHORD_POINTS,
+) -> np.ndarray:
+    """``(count, D)`` points drawn uniformly from the set ``{s in [0, 1)^D : score(s) > threshold}``
+    by hit-and-run from points ``start (k, D)`` inside it.
+
+    Each chain moves to a point chosen uniformly among those of a random chord's stratified grid
+    (:func:`_chord_points`) that lie in the set, and stays where none does. The grid does not depend
+    on where on the chord the chain is, so a move and its reverse are equally likely: the chains
+    are reversible with respect to the uniform distribution on the set, whatever its shape, and
+    reach all of it that chords connect. This is what draws a set far too small for uniform draws
+    (a millionth of the box) uniformly. ``chains`` chains start at points of ``start`` (cycled),
+    run ``burn_in`` steps (default ``20 + 10 D``) and then give a point every ``thin`` steps.
+    ``score`` maps ``(n, D)`` to ``(n,)``.
+    """
+    start = np.atleast_2d(np.asarray(start, dtype=np.float64))
+    dim = start.shape[1]
+    if count <= 0:
+        return np.zeros((0, dim))
+    chains = max(1, min(chains, count))
+    x = start[np.arange(chains) % len(start)].copy()
+    burn_in = 20 + 10 * dim if burn_in <= 0 else burn_in
+    out: list[np.ndarray] = []
+    step, taken = 0, 0
+    while taken < count:
+        cand = _chord_points(x, rng, points)
+        inside = np.asarray(score(cand.reshape(-1, dim)), dtype=np.float64).reshape(chains, points) > threshold
+        pick = np.where(inside, rng.random(inside.shape), -1.0).argmax(1)
+        moved = inside.any(1)
+        x = np.where(moved[:, None], cand[np.arange(chains), pick], x)
+        step += 1
+        if step > burn_in and (step - burn_in) % thin == 0:
+            out.append(x[: count - taken].copy())
+            taken += len(out[-1])
+    return np.concatenate(out)
+
+
+def climb_into_set(
+    score: Callable[[np.ndarray], np.ndarray], start: np.ndarray, threshold: float, rng: np.random.Generator,
+    steps: int = 200, points: int = CHORD_POINTS, patience: int = 20,
+) -> np.ndarray:
+    """Points of ``{score > threshold}`` found by climbing from ``start (m, D)`` (e.g. the
+    best-scoring uniform draws), ``(k, D)`` with k = 0 when none is found.
+
+    Each step scores a random chord's grid through every point (:func:`_chord_points`) and moves
+    each point to the best of them when that scores higher: a derivative-free ascent that finds a
+    set uniform draws miss, to start :func:`hit_and_run` from. Stops once some point is inside,
+    or after ``patience`` steps in which no point rose (a score flat to the last digit).
+    """
+    x = np.atleast_2d(np.asarray(start, dtype=np.float64)).copy()
+    m, dim = x.shape
+    p = np.asarray(score(x), dtype=np.float64)
+    still = 0
+    for _ in range(steps):
+        if (p > threshold).any() or still >= patience:
+            break
+        cand = _chord_points(x, rng, points)
+        q = np.asarray(score(cand.reshape(-1, dim)), dtype=np.float64).reshape(m, points)
+        j = q.argmax(1)
+        better = q[np.arange(m), j] > p
+        x[better], p[better] = cand[np.arange(m), j][better], q[np.arange(m), j][better]
+        still = 0 if better.any() else still + 1
+    return x[p > threshold]
+
+
+#: :func:`learned_intervals` adds hit-and-run points where fewer uniform draws than this are valid.
+MIN_INTERVAL_POINTS = 100
+
+
 def learned_intervals(
     layers: Sequence[tuple[np.ndarray, np.ndarray]] | None,
     ranges: np.ndarray,
@@ -142,8 +234,11 @@ def learned_intervals(
 ) -> np.ndarray:
     """``(K, 2)`` per-object actual-scale interval of the learned valid set (its bounding box).
 
-    Monte-Carlo over the whole normalised domain [0, 1)^(K-1); the anchor's interval is [1, 1].
-    Raises ``ExportFormatError`` when no draw is valid (the network accepts nothing), instead of
+    Monte-Carlo over the whole normalised domain [0, 1)^(K-1); where fewer than
+    :data:`MIN_INTERVAL_POINTS` draws are valid (a set of a millionth of the box), also
+    :func:`hit_and_run` from them (or from :func:`climb_into_set` when none is), so the box is that
+    of the set and not of a few draws. The anchor's interval is [1, 1]. Raises
+    ``ExportFormatError`` when no valid point is found (the network accepts nothing), instead of
     returning an empty or inverted interval.
     """
     K = len(ranges)
@@ -154,11 +249,20 @@ def learned_intervals(
     if layers is None:
         out[free] = ranges[free]
         return out
-    s = np.random.default_rng(seed).random((draws, len(free)))
-    ok = scale_net_numpy(layers, s, hidden, output) >= threshold
-    if not ok.any():
-        raise ExportFormatError(f"the scale network accepts none of {draws} uniform draws: no valid configuration")
-    sbar = denormalise(s[ok], ranges[free])
+    rng = np.random.default_rng(seed)
+    s = rng.random((draws, len(free)))
+    p = scale_net_numpy(layers, s, hidden, output)
+    inside = s[p >= threshold]
+    if len(inside) < MIN_INTERVAL_POINTS:
+        def score(x: np.ndarray) -> np.ndarray:
+            return scale_net_numpy(layers, x, hidden, output)
+
+        start = inside if len(inside) else climb_into_set(score, s[np.argsort(-p, kind="stable")[:64]], threshold, rng)
+        if not len(start):
+            raise ExportFormatError(f"the scale network accepts none of {draws} uniform draws, nor a point climbing "
+                                    "from the best of them: no valid configuration")
+        inside = np.concatenate([inside, hit_and_run(score, start, 10 * MIN_INTERVAL_POINTS, threshold, rng)])
+    sbar = denormalise(inside, ranges[free])
     out[free, 0], out[free, 1] = sbar.min(0), sbar.max(0)
     return out
 

@@ -39,7 +39,7 @@ from scenecore.validity import EmptyRegionError, ValidRegion, accumulate_ratio_b
 from benchgen.score.metrics import psnr_from_mse
 from osn.evaluate.layered import composite_layers, Layer, masked_mse_matrix
 from osn.preprocess.inputs import InputsError, denormalise_scales, normalise_scales, scale_range, scene_volume
-from osn.sample.configurations import sample_configurations
+from osn.sample.configurations import Samples, sample_configurations
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.volume import transmittance_weights
 from tests.synthetic import write_synthetic_dataset
@@ -636,18 +636,22 @@ def test_nearly_empty_valid_set_falls_back_with_a_warning(trained: Path, caplog)
     assert "using the best-scoring rest" in caplog.text
 
 
-def test_partial_fallback_never_repeats_a_kept_sample(trained: Path) -> None:
-    """When some candidates pass and the rest fall back, the fallback takes candidates that did
-    not pass: every returned vector is distinct (a repeated one would inflate best-of-N)."""
+def test_too_few_uniform_draws_are_filled_from_inside_the_learned_set(trained: Path, tmp_path: Path) -> None:
+    """When uniform draws find only a few valid vectors, the rest are drawn by hit-and-run inside
+    the learned set, not taken from the best-scoring invalid ones: every returned vector passes
+    the threshold, none repeats, and the sample file records how many were chained."""
     from osn.model.run import load_run
 
     run = load_run(trained)
     first = run.scores(np.random.default_rng(0).random((4096, run.inputs.num_objects - 1)))
     threshold = float(np.sort(first)[-6])  # five of the first batch pass
     s = sample_configurations(run, 50, threshold=threshold, max_draws=4096)
-    assert s.fell_back == 45 and len(s.s_free) == 50
+    assert s.fell_back == 0 and s.chained == 45 and len(s.s_free) == 50
     assert len(np.unique(s.s_free, axis=0)) == 50
-    assert (s.score[:5] > threshold).all() and (s.score[5:] <= threshold).all()
+    assert (s.score > threshold).all() and np.array_equal(s.score, run.scores(s.s_free))
+    assert np.array_equal(sample_configurations(run, 50, threshold=threshold, max_draws=4096).s_free, s.s_free)
+    s.save(tmp_path / "samples.npz")
+    assert Samples.load(tmp_path / "samples.npz").chained == 45
 
 
 def test_inputs_without_ground_truth_units_train_and_refuse_evaluation_up_front(trained: Path, tiny_dataset: Path, caplog) -> None:

@@ -292,7 +292,7 @@ def stage_sample(args: argparse.Namespace, p: DemoPaths) -> dict:
     """Draw N configurations from the scale network (no ground truth)."""
     s = sample_configurations(load_run(p.run), args.n, args.threshold, args.seed)
     s.save(p.run / "samples.npz")
-    return {"n": len(s.sbar), "fell_back": s.fell_back}
+    return {"n": len(s.sbar), "fell_back": s.fell_back, "chained": s.chained}
 
 
 def stage_evaluate(args: argparse.Namespace, p: DemoPaths) -> dict:

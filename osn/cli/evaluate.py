@@ -25,7 +25,8 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     s = sample_configurations(run, args.n, args.threshold, args.seed)
     out = Path(args.out) if args.out else Path(args.run) / "samples.npz"
     s.save(out)
-    note = f" ({s.fell_back} below the threshold: the network found too few valid candidates)" if s.fell_back else ""
+    note = f" ({s.chained} by hit-and-run inside the set: uniform draws found too few)" if s.chained else ""
+    note += f" ({s.fell_back} below the threshold: no valid vector was found)" if s.fell_back else ""
     print(f"{len(s.sbar)} configurations (score > {args.threshold}){note} written to {out} "
           f"in {time.perf_counter() - t0:.1f} s; scores {s.score.min():.3f}..{s.score.max():.3f}")
     return 0

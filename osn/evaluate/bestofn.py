@@ -226,6 +226,7 @@ def evaluate(
         "candidates_rendered_exactly": int(len(cand)),
         "approx_match_agrees": float(np.mean(approx_match == match)),
         "sample_fallbacks": samples.fell_back,
+        "samples_by_hit_and_run": samples.chained,
         **ground_truth_outside_box(run, truth.scales),
         **unposed_object_pixels(run, truth),
         **true_extra,

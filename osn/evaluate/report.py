@@ -304,6 +304,10 @@ def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str)
         + (f", true scales {res.timings['true_scales_s']:.0f} s |" if "true_scales_s" in res.timings else " |"),
         f"| ground truths outside the sampled scale box (Eq. 1; reachable only from its edge) | "
         f"{e['gt_outside_scale_box']} of {e['num_gt']} (at most {e['gt_outside_scale_box_max']:.3f} of a range beyond it) |",
+        *([f"| samples drawn by hit-and-run inside the learned set (uniform draws found too few) | "
+           f"{e['samples_by_hit_and_run']} of {e['num_samples']} |"] if e.get("samples_by_hit_and_run") else []),
+        *([f"| samples below the validity threshold (no valid vector found: the best-scoring ones) | "
+           f"{e['sample_fallbacks']} of {e['num_samples']} |"] if e.get("sample_fallbacks") else []),
         f"| samples rendered and scored exactly (pre-selected by the layered estimate) | {e['candidates_rendered_exactly']} of {e['num_samples']} |",
         f"| layered estimate alone picks the same match | {100 * e['approx_match_agrees']:.0f}% of ground truths |",
         "",

@@ -1,8 +1,10 @@
 """``osn sample``: valid scale configurations drawn from a trained scale network (no ground truth).
 
-:func:`sample_configurations` rejection-samples the normalised scale box of the non-anchor
-objects and keeps the vectors the scale network scores above a threshold; :class:`Samples` is
-what ``RUN/samples.npz`` holds, read by ``osn evaluate`` and ``osn export``.
+:func:`sample_configurations` draws uniformly from the learned valid set (the vectors of the
+non-anchor objects' normalised scale box that the scale network scores above a threshold):
+rejection sampling of the box, and where the set is too small for that (its share of the box
+falls exponentially with the number of objects) hit-and-run inside it; :class:`Samples` is what
+``RUN/samples.npz`` holds, read by ``osn evaluate`` and ``osn export``.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from scenecore import dataset as D
+from scenecore.scale_space import climb_into_set, hit_and_run
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
 
@@ -24,8 +27,9 @@ log = logging.getLogger(__name__)
 @dataclass
 class Samples:
     """N scale vectors: normalised free scales ``s_free (N, K-1)``, de-normalised ``sbar (N, K)``
-    (by object position), validity scores ``score (N,)``; ``fell_back`` of them scored below
-    ``threshold`` (too few valid candidates were found)."""
+    (by object position), validity scores ``score (N,)``; the last ``chained`` of them were drawn
+    by hit-and-run (uniform draws found too few), and the last ``fell_back`` scored below
+    ``threshold`` (no valid vector was found at all)."""
 
     s_free: np.ndarray
     sbar: np.ndarray
@@ -33,12 +37,13 @@ class Samples:
     threshold: float
     seed: int
     fell_back: int = 0
+    chained: int = 0
 
     def save(self, path: str | Path) -> None:
         """Write an ``.npz`` atomically."""
         buf = io.BytesIO()
         np.savez(buf, s_free=self.s_free, sbar=self.sbar, score=self.score,
-                 meta=np.array([self.threshold, self.seed, self.fell_back], dtype=np.float64))
+                 meta=np.array([self.threshold, self.seed, self.fell_back, self.chained], dtype=np.float64))
         D.atomic_write_bytes(path, buf.getvalue())
 
     @classmethod
@@ -50,7 +55,8 @@ class Samples:
         try:
             z = np.load(path)
             meta = z["meta"]
-            return cls(z["s_free"], z["sbar"], z["score"], float(meta[0]), int(meta[1]), int(meta[2]))
+            chained = int(meta[3]) if len(meta) > 3 else 0  # files written before hit-and-run have three
+            return cls(z["s_free"], z["sbar"], z["score"], float(meta[0]), int(meta[1]), int(meta[2]), chained)
         except Exception as e:
             raise ValueError(f"{path}: not an osn samples file ({e})") from None
 
@@ -63,14 +69,17 @@ BATCH = 1 << 18
 
 
 def sample_configurations(run: TrainedRun, n: int, threshold: float = VALID_THRESHOLD, seed: int = 0, max_draws: int = 2_000_000) -> Samples:
-    """Draw ``n`` scale vectors with validity score above ``threshold`` (rejection sampling).
+    """Draw ``n`` scale vectors uniformly from the set whose validity score is above ``threshold``.
 
     Candidates are uniform in the normalised box [0, 1)^(K-1), scored in batches of at most
-    :data:`BATCH`. If fewer than ``n`` pass within ``max_draws`` candidates (at least one batch),
-    the best-scoring remaining candidates fill up with a logged warning (never an error). A
-    single-object scene has one configuration (the anchor alone). ``ValueError`` for ``n`` outside
-    1..:data:`MAX_SAMPLES` or a threshold that is not a finite number in [0, 1) (scores are
-    sigmoids: none exceeds 1).
+    :data:`BATCH`, and kept when they pass. If fewer than ``n`` pass within ``max_draws``
+    candidates (at least one batch), the rest are drawn by hit-and-run inside the set
+    (:func:`scenecore.scale_space.hit_and_run`), starting from those that passed or, when none
+    did, from where climbing from the best-scoring candidates enters the set. Only when that
+    finds no valid vector either do the best-scoring candidates fill up, with a logged warning
+    (never an error). A single-object scene has one configuration (the anchor alone).
+    ``ValueError`` for ``n`` outside 1..:data:`MAX_SAMPLES` or a threshold that is not a finite
+    number in [0, 1) (scores are sigmoids: none exceeds 1).
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_SAMPLES:
         raise ValueError(f"the number of samples must be an integer in 1..{MAX_SAMPLES:,}, got {n}")
@@ -98,10 +107,19 @@ def sample_configurations(run: TrainedRun, n: int, threshold: float = VALID_THRE
         best_s, best_p = best_s[top], best_p[top]
     s_all = np.concatenate(kept_s)
     p_all = np.concatenate(kept_p)
+    chained = 0
+    if len(s_all) < n:
+        start = s_all if len(s_all) else climb_into_set(run.scores, best_s[:64], threshold, rng)
+        if len(start):
+            more = hit_and_run(run.scores, start, n - len(s_all), threshold, rng)
+            chained = len(more)
+            log.info("%d of %d candidates scored above %.3g in %d uniform draws; %d more drawn by hit-and-run inside the set",
+                     len(s_all), n, threshold, drawn, chained)
+            s_all, p_all = np.concatenate([s_all, more]), np.concatenate([p_all, run.scores(more)])
     fell = n - len(s_all)
     if fell:
         log.warning("only %d of %d candidates scored above %.3g after %d draws; using the best-scoring rest",
                     len(s_all), n, threshold, drawn)
         s_all = np.concatenate([s_all, best_s[:fell]])
         p_all = np.concatenate([p_all, best_p[:fell]])
-    return Samples(s_all, run.sbar(s_all), p_all, threshold, seed, fell)
+    return Samples(s_all, run.sbar(s_all), p_all, threshold, seed, fell, chained)
