@@ -154,7 +154,7 @@ def _chord_points(x: np.ndarray, rng: np.random.Generator, points: int) -> np.nd
 
 def hit_and_run(
     score: Callable[[np.ndarray], np.ndarray], start: np.ndarray, count: int, threshold: float,
-    rng: np.random.Generator, chains: int = 200, burn_in: int = 0, thin: int = 5, points: int = CHORD_POINTS,
+    rng: np.random.Generator, chains: int = 0, burn_in: int = 0, thin: int = 5, points: int = CHORD_POINTS,
 ) -> np.ndarray:
     """``(count, D)`` points drawn uniformly from the set ``{s in [0, 1)^D : score(s) > threshold}``
     by hit-and-run from points ``start (k, D)`` inside it.
@@ -164,15 +164,16 @@ def hit_and_run(
     on where on the chord the chain is, so a move and its reverse are equally likely: the chains
     are reversible with respect to the uniform distribution on the set, whatever its shape, and
     reach all of it that chords connect. This is what draws a set far too small for uniform draws
-    (a millionth of the box) uniformly. ``chains`` chains start at points of ``start`` (cycled),
-    run ``burn_in`` steps (default ``20 + 10 D``) and then give a point every ``thin`` steps.
-    ``score`` maps ``(n, D)`` to ``(n,)``.
+    (a millionth of the box) uniformly. ``chains`` chains (default: 200, more for large counts so
+    that each gives at most 50 points, at most 4096 so that a step's points stay a few tens of MB)
+    start at points of ``start`` (cycled), run ``burn_in`` steps (default ``20 + 10 D``) and then
+    give a point every ``thin`` steps. ``score`` maps ``(n, D)`` to ``(n,)``.
     """
     start = np.atleast_2d(np.asarray(start, dtype=np.float64))
     dim = start.shape[1]
     if count <= 0:
         return np.zeros((0, dim))
-    chains = max(1, min(chains, count))
+    chains = max(1, min(chains or min(4096, max(200, count // 50)), count))
     x = start[np.arange(chains) % len(start)].copy()
     burn_in = 20 + 10 * dim if burn_in <= 0 else burn_in
     out: list[np.ndarray] = []
