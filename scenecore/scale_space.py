@@ -130,60 +130,102 @@ def scale_scores(
     return scale_net_numpy(layers, normalise(sbar[:, free], ranges[free]), hidden, output)
 
 
-#: Points scored along each chord of a hit-and-run or climbing step: a set a few hundredths of the
-#: box across along a chord holds several of them.
+#: Points scored along each chord of a climbing step: a set a few hundredths of the box across
+#: along a chord holds several of them.
 CHORD_POINTS = 128
 #: Largest normalised coordinate: the box is [0, 1) per axis.
 _TOP = 1.0 - 1e-9
+#: Shrinkage proposals per hit-and-run step before a chain stays where it is (each rejected one
+#: cuts the chord's interval at least in two about the chain's point, which always lies inside).
+SHRINK_TRIES = 60
 
 
-def _chord_points(x: np.ndarray, rng: np.random.Generator, points: int) -> np.ndarray:
-    """``(m, points, D)`` points of the chords of the box [0, 1)^D through ``x (m, D)`` along random
-    directions: a stratified grid (one random offset per chord), so every point of a chord is
-    equally likely to be on it, wherever on the chord ``x`` lies."""
-    m, dim = x.shape
+def _unit_directions(m: int, dim: int, rng: np.random.Generator) -> np.ndarray:
     d = rng.standard_normal((m, dim))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _chords(x: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the interval ``[lo, hi]`` of t (``lo <= 0 <= hi``) with ``x + t d`` in the box [0, 1)^D."""
     safe = np.where(d == 0.0, 1.0, d)  # a zero component never limits the chord
     a, b = -x / safe, (_TOP - x) / safe
     lo = np.where(d == 0.0, -np.inf, np.minimum(a, b)).max(1)
     hi = np.where(d == 0.0, np.inf, np.maximum(a, b)).min(1)
+    return np.minimum(lo, 0.0), np.maximum(hi, 0.0)
+
+
+def _chord_points(x: np.ndarray, rng: np.random.Generator, points: int) -> np.ndarray:
+    """``(m, points, D)`` points of the box's chords through ``x (m, D)`` along random directions,
+    on a stratified grid (one random offset per chord)."""
+    m, dim = x.shape
+    d = _unit_directions(m, dim, rng)
+    lo, hi = _chords(x, d)
     t = lo[:, None] + (hi - lo)[:, None] * (np.arange(points) + rng.random((m, 1))) / points
     return np.clip(x[:, None] + t[..., None] * d[:, None], 0.0, _TOP)
 
 
+def _shrinkage_moves(score: Callable[[np.ndarray], np.ndarray], x: np.ndarray, d: np.ndarray, threshold: float,
+                     rng: np.random.Generator) -> np.ndarray:
+    """Each row of ``x`` moved along its direction ``d`` to a point drawn uniformly from the set on
+    its chord, by slice sampling's shrinkage (Neal 2003): propose uniformly on the chord's interval,
+    and on a miss cut the interval at the proposal, keeping the side that holds the current point.
+    For a uniform target this move is reversible whatever the set's shape."""
+    x = x.copy()
+    lo, hi = _chords(x, d)
+    active = np.arange(len(x))
+    for _ in range(SHRINK_TRIES):
+        if not len(active):
+            break
+        t = lo[active] + (hi[active] - lo[active]) * rng.random(len(active))
+        cand = np.clip(x[active] + t[:, None] * d[active], 0.0, _TOP)
+        ok = np.asarray(score(cand), dtype=np.float64) > threshold
+        x[active[ok]] = cand[ok]
+        miss, tm = active[~ok], t[~ok]
+        lo[miss[tm < 0]] = tm[tm < 0]
+        hi[miss[tm >= 0]] = tm[tm >= 0]
+        active = miss
+    return x
+
+
 def hit_and_run(
     score: Callable[[np.ndarray], np.ndarray], start: np.ndarray, count: int, threshold: float,
-    rng: np.random.Generator, chains: int = 0, burn_in: int = 0, thin: int = 5, points: int = CHORD_POINTS,
+    rng: np.random.Generator, chains: int = 0, burn_in: int = 0, thin: int = 5,
 ) -> np.ndarray:
     """``(count, D)`` points drawn uniformly from the set ``{s in [0, 1)^D : score(s) > threshold}``
     by hit-and-run from points ``start (k, D)`` inside it.
 
-    Each chain moves to a point chosen uniformly among those of a random chord's stratified grid
-    (:func:`_chord_points`) that lie in the set, and stays where none does. The grid does not depend
-    on where on the chord the chain is, so a move and its reverse are equally likely: the chains
-    are reversible with respect to the uniform distribution on the set, whatever its shape, and
-    reach all of it that chords connect. This is what draws a set far too small for uniform draws
-    (a millionth of the box) uniformly. ``chains`` chains (default: 200, more for large counts so
-    that each gives at most 50 points, at most 4096 so that a step's points stay a few tens of MB)
-    start at points of ``start`` (cycled), run ``burn_in`` steps (default ``20 + 10 D``) and then
-    give a point every ``thin`` steps. ``score`` maps ``(n, D)`` to ``(n,)``.
+    Each step moves every chain along a direction to a uniform point of the set on that line
+    (:func:`_shrinkage_moves`). Half of the chains move at a time, along random directions or,
+    alternately, along the difference of two chains of the other half: the direction does not
+    depend on the moving chain, so each move is reversible with respect to the uniform
+    distribution on the set, and differences of spread chains follow the set's long axes, which
+    random directions almost never do on a thin slanted slab (an ensemble sampler, after
+    Karamanis and Beutler's ensemble slice sampling). This is what draws a set far too small for
+    uniform draws (a millionth of the box) uniformly. ``chains`` chains (default: 200, more for
+    large counts so that each gives at most 50 points, at most 4096) start at points of ``start``
+    (cycled), run ``burn_in`` steps (default ``40 + 10 D``) and then give a point every ``thin``
+    steps. ``score`` maps ``(n, D)`` to ``(n,)``.
     """
     start = np.atleast_2d(np.asarray(start, dtype=np.float64))
     dim = start.shape[1]
     if count <= 0:
         return np.zeros((0, dim))
-    chains = max(1, min(chains or min(4096, max(200, count // 50)), count))
+    chains = max(2, min(chains or min(4096, max(200, count // 50)), max(count, 2)))
     x = start[np.arange(chains) % len(start)].copy()
-    burn_in = 20 + 10 * dim if burn_in <= 0 else burn_in
+    halves = (np.arange(0, chains, 2), np.arange(1, chains, 2))
+    burn_in = 40 + 10 * dim if burn_in <= 0 else burn_in
     out: list[np.ndarray] = []
     step, taken = 0, 0
     while taken < count:
-        cand = _chord_points(x, rng, points)
-        inside = np.asarray(score(cand.reshape(-1, dim)), dtype=np.float64).reshape(chains, points) > threshold
-        pick = np.where(inside, rng.random(inside.shape), -1.0).argmax(1)
-        moved = inside.any(1)
-        x = np.where(moved[:, None], cand[np.arange(chains), pick], x)
+        for k, (move, other) in enumerate((halves, halves[::-1])):
+            d = _unit_directions(len(move), dim, rng)
+            if (step + k) % 2:  # along differences of the other half's chains, where they differ
+                a, b = rng.integers(len(other), size=(2, len(move)))
+                diff = x[other[a]] - x[other[b]]
+                norm = np.linalg.norm(diff, axis=1)
+                use = norm > 0
+                d[use] = diff[use] / norm[use, None]
+            x[move] = _shrinkage_moves(score, x[move], d, threshold, rng)
         step += 1
         if step > burn_in and (step - burn_in) % thin == 0:
             out.append(x[: count - taken].copy())
@@ -272,20 +314,29 @@ def sample_valid_configurations(
     score: Callable[[np.ndarray], np.ndarray], intervals: np.ndarray, threshold: float, count: int, seed: int,
     max_draws: int = 1_000_000,
 ) -> np.ndarray:
-    """``(count, K)`` actual scales drawn uniformly inside ``intervals (K, 2)`` and kept when valid.
+    """``(count, K)`` actual scales drawn uniformly from the valid set inside ``intervals (K, 2)``.
 
     Seeded rejection sampling through ``score`` (actual scales ``(N, K)`` -> ``(N,)``, e.g.
-    :meth:`ExportData.validity`), batch by batch, so the result depends only on ``seed``.
-    Raises ``ExportFormatError`` if ``max_draws`` draws give too few.
+    :meth:`ExportData.validity`), batch by batch, so the result depends only on ``seed``; when
+    ``max_draws`` draws give too few (a set that fills little of its intervals' box), the rest
+    are drawn by :func:`hit_and_run` from those found. Raises ``ExportFormatError`` when no draw
+    is valid.
     """
     rng = np.random.default_rng(seed)
     lo, hi = intervals[:, 0], intervals[:, 1]
     kept: list[np.ndarray] = []
-    drawn = 0
-    while sum(len(k) for k in kept) < count:
-        if drawn >= max_draws:
-            raise ExportFormatError(f"only {sum(len(k) for k in kept)} of {count} valid configurations in {max_draws} draws")
+    drawn = found = 0
+    while found < count and drawn < max_draws:
         batch = lo + (hi - lo) * rng.random((4096, len(lo)))
         drawn += len(batch)
         kept.append(batch[score(batch) >= threshold])
-    return np.concatenate(kept)[:count]
+        found += len(kept[-1])
+    if not found:
+        raise ExportFormatError(f"no valid configuration in {drawn} draws inside the learned intervals")
+    inside = np.concatenate(kept)[:count]
+    if found < count:
+        span = np.where(hi > lo, hi - lo, 1.0)
+        unit = lambda u: score(lo + (hi - lo) * u)  # noqa: E731  (the box's unit cube)
+        more = hit_and_run(unit, (inside - lo) / span, count - found, np.nextafter(threshold, -np.inf), rng)
+        inside = np.concatenate([inside, lo + (hi - lo) * more])
+    return inside
