@@ -64,8 +64,11 @@ def _evaluate_locked(args: argparse.Namespace, out: Path) -> int:
 def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``osn sample`` and ``osn evaluate``."""
     p = subcommand(sub, "sample", _cmd_sample, "draw valid scale configurations from a trained scale network",
-                   description="Rejection-sample N scale vectors whose validity score exceeds the threshold. Uses no "
-                   "ground truth. Writes normalised scales, de-normalised scales and scores to RUN/samples.npz.")
+                   description="Draw N scale vectors uniformly from the learned valid set (validity score above the "
+                   "threshold): uniform draws over the scale box, and where they find too few (a set a millionth "
+                   "of the box) hit-and-run inside the set from those found. Uses no ground truth. Writes "
+                   "normalised scales, de-normalised scales, scores and how many were drawn each way to "
+                   "RUN/samples.npz.")
     p.add_argument("run", help="run directory of `osn train`")
     p.add_argument("-n", type=int, default=1000, help="number of configurations")
     p.add_argument("--threshold", type=float, default=0.5, help="minimum validity score")
