@@ -19,7 +19,7 @@ ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
 __all__ = [
     "ACTIVATIONS", "scale_net_numpy", "denormalise", "normalise", "configured_poses", "scale_scores",
     "learned_intervals", "sample_valid_configurations", "SCENE_NEAR_FACTOR", "SCENE_FAR_FACTOR",
-    "scale_range", "scene_volume", "eq1_box", "hit_and_run", "climb_into_set",
+    "scale_range", "scene_volume", "eq1_box", "hit_and_run", "climb_into_set", "fill_from_set",
 ]
 
 #: The scene volume of Eq. 1 is ``[SCENE_NEAR_FACTOR * min_k near_k, SCENE_FAR_FACTOR * max_k
@@ -261,6 +261,21 @@ def climb_into_set(
     return x[p > threshold]
 
 
+def fill_from_set(
+    score: Callable[[np.ndarray], np.ndarray], inside: np.ndarray, best: np.ndarray, count: int, threshold: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """``(count, D)`` more points of ``{score > threshold}`` in [0, 1)^D, drawn by :func:`hit_and_run`
+    from the points ``inside (k, D)`` already found there or, when there are none, from where
+    :func:`climb_into_set` enters the set from ``best (m, D)`` (the best-scoring draws); ``(0, D)``
+    when neither finds a point of the set. What every sampler of the learned set does once its
+    uniform draws find too few."""
+    start = inside if len(inside) else climb_into_set(score, best, threshold, rng) if len(best) else best
+    if not len(start):
+        return np.zeros((0, np.shape(inside)[-1]))
+    return hit_and_run(score, start, count, threshold, rng)
+
+
 #: :func:`learned_intervals` adds hit-and-run points where fewer uniform draws than this are valid.
 MIN_INTERVAL_POINTS = 100
 
@@ -297,14 +312,12 @@ def learned_intervals(
     p = scale_net_numpy(layers, s, hidden, output)
     inside = s[p >= threshold]
     if len(inside) < MIN_INTERVAL_POINTS:
-        def score(x: np.ndarray) -> np.ndarray:
-            return scale_net_numpy(layers, x, hidden, output)
-
-        start = inside if len(inside) else climb_into_set(score, s[np.argsort(-p, kind="stable")[:64]], threshold, rng)
-        if not len(start):
+        inside = np.concatenate([inside, fill_from_set(lambda x: scale_net_numpy(layers, x, hidden, output), inside,
+                                                       s[np.argsort(-p, kind="stable")[:64]], 10 * MIN_INTERVAL_POINTS,
+                                                       threshold, rng)])
+        if not len(inside):
             raise ExportFormatError(f"the scale network accepts none of {draws} uniform draws, nor a point climbing "
                                     "from the best of them: no valid configuration")
-        inside = np.concatenate([inside, hit_and_run(score, start, 10 * MIN_INTERVAL_POINTS, threshold, rng)])
     sbar = denormalise(inside, ranges[free])
     out[free, 0], out[free, 1] = sbar.min(0), sbar.max(0)
     return out
@@ -334,9 +347,9 @@ def sample_valid_configurations(
     if not found:
         raise ExportFormatError(f"no valid configuration in {drawn} draws inside the learned intervals")
     inside = np.concatenate(kept)[:count]
-    if found < count:
+    if found < count:  # in the intervals' unit cube; ">= threshold" as the draws above
         span = np.where(hi > lo, hi - lo, 1.0)
-        unit = lambda u: score(lo + (hi - lo) * u)  # noqa: E731  (the box's unit cube)
-        more = hit_and_run(unit, (inside - lo) / span, count - found, np.nextafter(threshold, -np.inf), rng)
+        more = fill_from_set(lambda u: score(lo + (hi - lo) * u), (inside - lo) / span, np.zeros((0, len(lo))),
+                             count - found, np.nextafter(threshold, -np.inf), rng)
         inside = np.concatenate([inside, lo + (hi - lo) * more])
     return inside

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from scenecore import dataset as D
-from scenecore.scale_space import climb_into_set, hit_and_run
+from scenecore.scale_space import fill_from_set
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
 
@@ -109,9 +109,8 @@ def sample_configurations(run: TrainedRun, n: int, threshold: float = VALID_THRE
     p_all = np.concatenate(kept_p)
     chained = 0
     if len(s_all) < n:
-        start = s_all if len(s_all) else climb_into_set(run.scores, best_s[:64], threshold, rng)
-        if len(start):
-            more = hit_and_run(run.scores, start, n - len(s_all), threshold, rng)
+        more = fill_from_set(run.scores, s_all, best_s[:64], n - len(s_all), threshold, rng)
+        if len(more):
             chained = len(more)
             log.info("%d of %d candidates scored above %.3g in %d uniform draws; %d more drawn by hit-and-run inside the set",
                      len(s_all), n, threshold, drawn, chained)

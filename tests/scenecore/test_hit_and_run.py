@@ -71,6 +71,10 @@ def test_learned_intervals_of_a_tiny_set_are_its_box() -> None:
     assert iv[0].tolist() == [1.0, 1.0]
     assert iv[1, 0] == pytest.approx(1.0 + a, abs=2e-4) and iv[1, 1] == pytest.approx(1.0 + b, abs=2e-4)
     assert iv[2, 0] < 1.01 and iv[2, 1] > 1.99 and iv[3, 0] < 1.01 and iv[3, 1] > 1.99
+    from scenecore.errors import ExportFormatError
+
+    with pytest.raises(ExportFormatError, match="accepts none of 2000 uniform draws, nor a point climbing"):
+        learned_intervals([(w1, b1), (w2, np.array([-1e9]))], ranges, 0, draws=2000)
 
 
 def test_configurations_inside_intervals_are_drawn_even_where_the_set_fills_little_of_them() -> None:
