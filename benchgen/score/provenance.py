@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 from scenecore import dataset as D
-from scenecore.dataset.images import open_regular
+from scenecore.dataset.images import open_regular, read_pieces
 
 PROTOCOL_NAME = "benchgen-best-of-n"
 #: Bumped when what a score means changes (matching, masks or a metric's definition).
@@ -59,25 +59,13 @@ UNVERIFIED_HINT = "pass --unverified to score it anyway"
 
 def file_sha256(path: str | Path) -> str:
     """SHA-256 (hex) of a regular file, read in :data:`CHUNK` pieces up to the size it had when
-    opened; ``DatasetError`` naming it when it is missing, not a regular file or changed size.
-
-    Each read asks for one byte more than is left, so that a file that grew is seen without a
-    further call (a score hashes hundreds of thousands of small files: the calls are its cost)."""
+    opened (:func:`scenecore.dataset.images.read_pieces`); ``DatasetError`` naming it when it is
+    missing, not a regular file or changed size."""
     fh, size = open_regular(path)
     h = hashlib.sha256()
     with fh:
-        fd, left = fh.fileno(), size
-        while True:
-            want = min(CHUNK, left + 1)
-            chunk = os.read(fd, want)
-            if len(chunk) > left:
-                raise D.DatasetError(f"{path}: changed size while being read")
+        for chunk in read_pieces(fh, size, path, CHUNK):
             h.update(chunk)
-            left -= len(chunk)
-            if len(chunk) < want:  # a regular file's read comes back short only at its end
-                break
-        if left:
-            raise D.DatasetError(f"{path}: changed size while being read")
     return h.hexdigest()
 
 

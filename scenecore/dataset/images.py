@@ -10,7 +10,7 @@ import os
 import stat
 import struct
 from pathlib import Path
-from typing import BinaryIO, NamedTuple
+from typing import BinaryIO, Iterator, NamedTuple
 
 import numpy as np
 
@@ -139,20 +139,35 @@ def open_regular(path: str | Path) -> tuple[BinaryIO, int]:
     return _open_regular(path)
 
 
+def read_pieces(fh: BinaryIO, size: int, path: str | Path, piece: int) -> Iterator[bytes]:
+    """The bytes of the open regular file ``fh`` in pieces of at most ``piece``, exactly the
+    ``size`` it had when opened; ``DatasetError`` naming ``path`` when it grew or shrank. Each call
+    asks for one byte more than is left, so a file that grew shows it without a further call, and
+    a regular file's read comes back short only at its end (readers of many small files pay per call)."""
+    fd, left = fh.fileno(), size
+    while True:
+        want = min(piece, left + 1)
+        chunk = os.read(fd, want)
+        if len(chunk) > left:
+            raise DatasetError(f"{path}: changed size while being read")
+        left -= len(chunk)
+        if chunk:
+            yield chunk
+        if len(chunk) < want:
+            break
+    if left:
+        raise DatasetError(f"{path}: changed size while being read")
+
+
 def read_regular(path: str | Path, max_bytes: int) -> bytes:
     """The bytes of ``path``, a regular file of at most ``max_bytes`` (what such a file can
     legitimately hold), else ``DatasetError`` naming it; only the size it had when opened is read
-    (one call asking for a byte more: a file that grew returns it)."""
+    (:func:`read_pieces`, in one call)."""
     fh, size = _open_regular(path)
     with fh:
         if size > max_bytes:
             raise DatasetError(f"{path}: {size} bytes, more than the {max_bytes} such a file can hold")
-        data = os.read(fh.fileno(), size + 1)
-        while len(data) < size and (more := os.read(fh.fileno(), size + 1 - len(data))):
-            data += more
-    if len(data) != size:
-        raise DatasetError(f"{path}: changed size while being read")
-    return data
+        return b"".join(read_pieces(fh, size, path, size + 1))
 
 
 def read_image(path: str | Path) -> np.ndarray:
