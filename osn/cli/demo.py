@@ -319,7 +319,7 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
     p = DemoPaths(Path(args.work))
     width = _demo_spec(args, args.resolution, args.configs).width
     sfm_px = sfm_width(args, width)  # a bad one stops here, before rendering
-    demo_preprocess_config(args, sfm_px)  # so do bad SfM options
+    sfm_cfg = demo_preprocess_config(args, sfm_px)  # so do bad SfM options
     train_cfg = training_config(args.config, args.field_iterations)  # also what the train stage depends on
     # What each stage's outputs depend on: a rerun with other values stops instead of mixing them.
     train_options = {f"train.{k}": v for k, v in _flat(train_cfg.to_dict()).items()}
@@ -344,7 +344,8 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
               {k: v for k, v in (("sfm_resolution", sfm_res), ("anchor_downscale", str(args.anchor_downscale)),
                                  ("crop_margin", str(args.crop_margin)),  # strings, as earlier work directories hold them
                                  # the fields learn the benchmark's frames, not SfM's averaged down
-                                 ("training_frames", "benchmark" if sfm_res else None)) if v not in (None, "auto")}),
+                                 ("training_frames", "benchmark" if sfm_res else None),
+                                 ("drop_occluding", sfm_cfg.drop_occluding)) if v not in (None, "auto")}),
         Stage("ground-truth", "benchgen: render every configuration's test views and verify them", start_ground_truth,
               bench, background=True),
         Stage("train", f"train per-object fields and the scale network on {args.inputs_from} inputs",

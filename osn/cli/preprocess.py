@@ -194,10 +194,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    "frames and masks (the benchmark's video, the inputs' size) instead of the SfM frames averaged down, "
                    "which differ from them (area averages, where benchgen renders each pixel's centre ray); SfM's poses and "
                    "depths are kept")
-    p.add_argument("--drop-occluding", choices=["objects", "all", "none"], default=PreprocessConfig.drop_occluding,
-                   help="drop the sparse depths that lie in front of what the object's other frames saw (SfM's "
-                   "phantoms, found without ground truth) before normalising: of every object but the anchor, of all, "
-                   "or of none")
+    p.add_argument("--drop-occluding", choices=["training", "all", "none"], default=PreprocessConfig.drop_occluding,
+                   help="the sparse depths that lie in front of what the object's other frames saw (SfM's phantoms, "
+                   "found without ground truth): 'training' keeps them out of training, the anchor's only after they "
+                   "set its near plane (the scene volume); 'all' normalises the anchor without them too; 'none' keeps them")
     p.add_argument("--points-per-frame", type=int, default=PreprocessConfig.points_per_frame,
                    help="sparse depths kept per object and frame for training, at the written resolution, chosen at "
                    "random (0: as the oracle, a sixteenth of the frame's pixels, at least 256); near, far and each "

@@ -8,10 +8,10 @@ preprocess`` reports per object how many depths do so in at least half of the fr
 test them (:func:`occluding_flags`, ``occluding_depths`` in ``preprocess_report.json``): the
 only phantom figure a video without ground truth has. On gnome-house it flags most of the
 room's gross phantoms (below half the true depth) and almost none of its good depths
-(measurements in docs/experiments/). ``osn preprocess`` drops the flagged depths of every object
-but the anchor before normalising it (``drop_occluding: objects``): a small object's few
-phantoms would set its near plane and box; dropping the room's as well makes the valid set
-worse (docs/preprocess.md).
+(measurements in docs/experiments/). ``osn preprocess`` keeps the flagged depths out of training
+(``drop_occluding: training``): an object's are dropped before normalising it (a small object's
+few phantoms would set its near plane and box), the anchor's after (its near plane sets the
+scene volume, and normalising the room without them makes the valid set worse; docs/preprocess.md).
 
 Pure numpy on one object's observations in its own frame and unit; nothing here reads ground truth.
 """

@@ -72,11 +72,14 @@ class PreprocessConfig:
         min_matches, init_min_inliers, init_min_tri_angle, abs_pose_min_inliers: mapper
             thresholds, relaxed from COLMAP's megapixel defaults for small object crops.
         scene_near_factor, scene_far_factor, box_padding: as in the oracle (shared normalisation).
-        drop_occluding: whose sparse depths :func:`osn.preprocess.freespace.occluding_flags`
-            flags are dropped before normalising: ``objects`` (every object but the anchor),
-            ``all`` or ``none``. A few phantom depths on a small object (gnome-house's sofa) set its
-            near plane and box; dropping the room's too (the anchor, whose near
-            plane sets Eq. 1's scene volume) makes the valid set worse (docs/preprocess.md).
+        drop_occluding: the sparse depths :func:`osn.preprocess.freespace.occluding_flags` flags
+            (phantoms): ``training`` drops every object's from training, before normalising it,
+            except the anchor's, which are dropped after (they still set its near plane, and with it
+            Eq. 1's scene volume); ``all`` drops the anchor's before normalising too; ``none``
+            keeps them. A few phantom depths on a small object (gnome-house's sofa) set its near
+            plane and box; the room's pull its learned surface toward the camera next to the objects
+            and cut their contact bounds tight; normalising the room without them makes the valid
+            set worse (docs/preprocess.md).
         points_per_frame: sparse depths per object and frame kept for training, at the training
             resolution (after any downscale), chosen at random with ``seed``; 0 = as the oracle
             (:func:`osn.preprocess.inputs.auto_points_per_frame`). Near, far and boxes use all.
@@ -121,7 +124,7 @@ class PreprocessConfig:
     scene_near_factor: float = SCENE_NEAR_FACTOR
     scene_far_factor: float = SCENE_FAR_FACTOR
     box_padding: float = BOX_PADDING
-    drop_occluding: str = "objects"
+    drop_occluding: str = "training"
     points_per_frame: int = 0
     seed: int = 0
     mapper_restarts: int = 4
@@ -157,7 +160,7 @@ PREPROCESS_RULES = {
     "init_min_tri_angle": number(0.0),
     "abs_pose_min_inliers": integer(0),
     **NORMALISATION_RULES,
-    "drop_occluding": choice("objects", "all", "none"),
+    "drop_occluding": choice("training", "all", "none"),
     "points_per_frame": integer(0),
     "seed": integer(0),
     "mapper_restarts": integer(0),  # 0 runs the mapper once, like 1

@@ -101,13 +101,15 @@ def _preprocess_video(
             log.warning("%s", verdict.message)
         sfm = without_frames(sfm, verdict.bad_frames)
         flags = occluding_flags(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, W, H)
-        drop = cfg.drop_occluding == "all" or (cfg.drop_occluding == "objects" and oid != anchor)
-        keep = [~f if drop else np.ones(len(f), dtype=bool) for f in flags]
+        drop = cfg.drop_occluding != "none"
+        # The anchor's flagged depths still set its near plane (the scene volume of Eq. 1) under
+        # `training`; they are dropped only once it is normalised.
+        before = drop and (cfg.drop_occluding == "all" or oid != anchor)
+        keep = [~f if before else np.ones(len(f), dtype=bool) for f in flags]
         pix, dep, wt = ([x[k] for x, k in zip(xs, keep)] for xs in (sfm.sparse_pix, sfm.sparse_depth, sfm.sparse_weight))
-        objects.append(
-            object_inputs_from_observations(oid, name, sfm.frames, sfm.cam_to_obj, pix, dep, wt, K, W, H,
-                                            cfg.box_padding, metres_per_unit=None)
-        )
+        obj = object_inputs_from_observations(oid, name, sfm.frames, sfm.cam_to_obj, pix, dep, wt, K, W, H,
+                                              cfg.box_padding, metres_per_unit=None)
+        objects.append(without_depths(obj, flags) if drop and not before else obj)
         report.objects.append({**_object_report(oid, name, sfm, flags, drop), "consistency": verdict.record()})
     masks = masks.copy()
     for oid in report.dropped:
@@ -142,6 +144,15 @@ def check_reconstructions(
     if anchor in verdicts and verdicts[anchor].drop:
         raise ObjectRegistrationError(verdicts[anchor].message)
     return verdicts
+
+
+def without_depths(obj: ObjectInputs, drop: list[np.ndarray]) -> ObjectInputs:
+    """``obj`` without the sparse depths ``drop`` (per frame a boolean mask over its depths) marks;
+    its frame, unit, near, far and box stay as normalised from all of them."""
+    keep = [~d for d in drop]
+    return dataclasses.replace(obj, sparse_pix=[x[k] for x, k in zip(obj.sparse_pix, keep)],
+                               sparse_depth=[x[k] for x, k in zip(obj.sparse_depth, keep)],
+                               sparse_weight=[x[k] for x, k in zip(obj.sparse_weight, keep)])
 
 
 def without_frames(sfm: ObjectSfM, frames: list[int]) -> ObjectSfM:

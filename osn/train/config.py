@@ -63,14 +63,13 @@ _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
     "w_before_depth": number(0.0),
-    "w_hidden_smooth": _auto_or(number(0.0)),
+    "w_hidden_smooth": number(0.0),
     # A margin of 1 would empty the surface itself; 0 nothing.
     "before_depth_margin": number(0.0, 1.0, lo_open=True, hi_open=True),
     "w_edge": _auto_or(number(0.0)),
-    "anchor_coverage": _auto_or(number(0.0, 1.0)),
     "edge_slope": number(0.0),
     "depth_robust": _auto_or(number(0.0)),
-    "final_label_trim": _auto_or(number(0.0, 1.0)),
+    "final_label_trim": number(0.0, 1.0),
     "anchor_guide_samples": _auto_or(integer(0)),
     **{name: integer(1) for name in _POSITIVE},
     **{name: integer(1, MAX_RAYS) for name in _SIZED_BY_RAYS if name in _POSITIVE},
@@ -87,8 +86,11 @@ _RULES: dict[str, Rule] = {
 
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
-ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0, "anchor_coverage": 0.9,
+ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
                                "w_hidden_smooth": 0.0}
+#: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
+#: that matches what training does now; :meth:`TrainConfig.from_yaml` drops them from run configs.
+REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9}
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -117,46 +119,6 @@ def resolve_w_edge(value: float | str, source: str) -> float:
     too far and cut the contact bounds tight; the term restores their recall (measurements in
     docs/experiments/)."""
     return by_source(value, source, 0.0, W_EDGE_SFM)
-
-
-#: ``w_hidden_smooth: auto`` on the oracle's inputs: the weight of the anchor's disparity curvature
-#: across the pixels objects hide it on (:func:`osn.train.losses.disparity_curvature`).
-W_HIDDEN_SMOOTH_ORACLE = 0.3
-
-
-def resolve_w_hidden_smooth(value: float | str, source: str) -> float:
-    """The hidden-anchor term's weight for inputs from ``source``: ``auto`` is
-    :data:`W_HIDDEN_SMOOTH_ORACLE` on the oracle's, where it raises the valid set's IoU and
-    narrows its spread over seeds, and off on anything else, where it did not help on SfM's
-    inputs (measurements in docs/experiments/)."""
-    return by_source(value, source, W_HIDDEN_SMOOTH_ORACLE, 0.0)
-
-
-#: ``anchor_coverage: auto`` on inputs other than the oracle's, and on the oracle's (the objects' threshold).
-ANCHOR_COVERAGE_SFM, ANCHOR_COVERAGE_ORACLE = 0.5, 0.9
-
-
-def resolve_anchor_coverage(value: float | str, source: str) -> float:
-    """The opacity above which the anchor covers a label ray, for inputs from ``source``: ``auto``
-    is :data:`ANCHOR_COVERAGE_SFM` on SfM inputs (there the room behind an object's contact stays
-    below 0.9 and the pool would lose that object's contact rays) and the objects' 0.9 on the
-    oracle's, where 0.5 lowers the valid set's IoU (measurements in docs/experiments/)."""
-    return by_source(value, source, ANCHOR_COVERAGE_ORACLE, ANCHOR_COVERAGE_SFM)
-
-
-#: ``final_label_trim: auto`` on the oracle's inputs and on anything else (see
-#: :func:`resolve_final_label_trim`).
-FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM = 0.002, 0.003
-
-
-def resolve_final_label_trim(value: float | str, source: str) -> float:
-    """The share of a pair's rays a valid sample may violate in the final scale phase, for inputs
-    from ``source``: ``auto`` is :data:`FINAL_LABEL_TRIM_ORACLE` on the oracle's exact contacts
-    (a looser trim accepts samples past the region's bounds) and :data:`FINAL_LABEL_TRIM_SFM` on
-    anything else, where a few contact rays of each pair are off and the oracle's trim cuts into
-    the region, while the rounds' looser trim lets the final fields' labels reach past the
-    objects' bounds against the room (measurements in docs/experiments/)."""
-    return by_source(value, source, FINAL_LABEL_TRIM_ORACLE, FINAL_LABEL_TRIM_SFM)
 
 
 #: ``anchor_guide_samples: auto``: the guide pass's density samples along each of the anchor's
@@ -300,12 +262,12 @@ class TrainConfig:
     """addition (experiments/2026-11-28-before-depth-free-space.md): Where ``w_before_depth``'s
     term stops along a sparse-depth ray. Unit: fraction of the sparse depth, in (0, 1). Neutral:
     none of its own (``w_before_depth: 0`` switches the term off)."""
-    w_hidden_smooth: float | str = "auto"
-    """addition (experiments/2026-11-28-hidden-anchor-smoothness.md): Weight of the anchor's
-    disparity curvature on strips across pixels that objects hide it on
+    w_hidden_smooth: float = 0.3
+    """addition (experiments/2026-11-28-hidden-anchor-smoothness.md,
+    experiments/2026-11-29-lost-recall-from-sfm-inputs.md): Weight of the anchor's disparity
+    curvature on strips across pixels that objects hide it on
     (``osn.train.losses.disparity_curvature``): zero on any plane, so a floor continues behind
-    what stands on it. ``auto`` (:func:`resolve_w_hidden_smooth`): :data:`W_HIDDEN_SMOOTH_ORACLE`
-    on the oracle's inputs, 0 on any other. Unit: loss weight. Neutral: 0 (term off)."""
+    what stands on it. Unit: loss weight. Neutral: 0 (term off)."""
     hidden_strips: int = 32
     """addition (experiments/2026-11-28-hidden-anchor-smoothness.md): Strips of five adjacent
     pixels drawn per step for ``w_hidden_smooth``'s term. Unit: strips per step. Neutral: none of
@@ -390,14 +352,11 @@ class TrainConfig:
     labelled valid when on every object pair it violates at most the step's best sample's count
     plus this share of the pair's rays, against noise in learned depths. Unit: fraction of a
     pair's rays, in [0, 1]. Neutral: 0 (no more violations than the best sample's)."""
-    final_label_trim: float | str = "auto"
+    final_label_trim: float = 0.002
     """addition (experiments/2026-11-25-final-scale-phase.md,
-    experiments/2026-11-27-final-label-trim-auto-sfm.md,
-    experiments/2026-11-28-final-label-trim-sfm-0003.md): ``label_trim`` of the final scale
-    phase: tight labels belong on final fields only. ``auto`` (:func:`resolve_final_label_trim`):
-    :data:`FINAL_LABEL_TRIM_ORACLE` on the oracle's inputs, :data:`FINAL_LABEL_TRIM_SFM` on any
-    other. Unit: fraction of a pair's rays, in [0, 1]. Neutral: the value of ``label_trim`` (the
-    final phase labels as the rounds do)."""
+    experiments/2026-11-29-lost-recall-from-sfm-inputs.md): ``label_trim`` of the final scale
+    phase: tight labels belong on final fields only. Unit: fraction of a pair's rays, in [0, 1].
+    Neutral: the value of ``label_trim`` (the final phase labels as the rounds do)."""
     pair_minority: float = 0.2
     """addition (experiments/2026-11-25-valid-set-scene-suite.md): An object pair with fewer label
     rays than this times its opposite pair's is left out of the labels: those few rays are a field
@@ -417,12 +376,6 @@ class TrainConfig:
     paper names no threshold): An object covers a label-pool ray when its opacity alone exceeds
     this; a pool ray needs its labelled object and another one covering it. Unit: opacity, in
     [0, 1]. Neutral: none."""
-    anchor_coverage: float | str = "auto"
-    """addition (experiments/2026-11-26-anchor-coverage.md): ``coverage_threshold`` for the anchor,
-    whose hidden surfaces behind an object's contact may stay thin. ``auto``
-    (:func:`resolve_anchor_coverage`): :data:`ANCHOR_COVERAGE_ORACLE` on the oracle's inputs,
-    :data:`ANCHOR_COVERAGE_SFM` on any other. Unit: opacity, in [0, 1]. Neutral: the value of
-    ``coverage_threshold`` (the anchor covers as the objects do)."""
     uncertain_acc: float = 0.9
     """addition (experiments/2026-11-25-valid-set-scene-suite.md): The label pool drops rays on
     which some object's opacity lies in ``(uncertain_acc, coverage_threshold]``. Unit: opacity, in
@@ -477,7 +430,7 @@ class TrainConfig:
         try:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
-                d = {**ADDED_LATER, **d}
+                d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
                 if isinstance(d.get("field"), dict):
                     d["field"] = {**FIELD_ADDED_LATER, **d["field"]}
             return cls.from_dict(d)

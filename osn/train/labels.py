@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
 from osn.model.volume import render_by_hits
-from osn.train.config import TrainConfig, label_stride, resolve_anchor_coverage
+from osn.train.config import TrainConfig, label_stride
 from osn.train.tensors import SceneTensors
 
 log = logging.getLogger(__name__)
@@ -48,9 +48,8 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     """Every object rendered alone on training pixels ``flat (P,)``.
 
     Returns ``depth (P, K)`` (independent planar depth in the object's own unit), ``acc (P, K)``
-    (opacity), ``covered (P, K)`` (``acc > coverage_threshold``; for the anchor ``acc >
-    anchor_coverage``) and ``uncertain (P,)``: some object's ``acc`` is above ``uncertain_acc``
-    and not above its coverage threshold.
+    (opacity), ``covered (P, K)`` (``acc > coverage_threshold``) and ``uncertain (P,)``: some
+    object's ``acc`` is above ``uncertain_acc`` and not above ``coverage_threshold``.
     """
     HW = st.H * st.W
     depth = torch.full((len(flat), st.K), float("inf"), device=st.device)  # no surface where absent
@@ -64,10 +63,6 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     one = torch.ones(st.K, device=st.device)
     frames_all, pix_all = flat // HW, flat % HW
     for k in range(st.K):
-        # The anchor (a room holding the objects) lies behind every object's pixels, where no frame
-        # shows it and its field is often semi-transparent: at 0.9 the contact rays behind the
-        # gnome's feet dropped out of the pool and its bound against the room with them (docs/training.md).
-        threshold = resolve_anchor_coverage(cfg.anchor_coverage, st.inputs.source) if k == st.anchor else cfg.coverage_threshold
         idx = torch.nonzero(st.present[k, frames_all])[:, 0]  # absent frames cost nothing
         for a in range(0, len(idx), chunk):
             i = idx[a : a + chunk]
@@ -75,8 +70,8 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
             out = render_by_hits(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.label_samples, None, cfg.skip_occluded)
             depth[i, k] = out.normalised_depth()
             acc[i, k] = out.acc
-            covered[i, k] = out.acc > threshold
-            uncertain[i] |= (out.acc > cfg.uncertain_acc) & (out.acc <= threshold)
+            covered[i, k] = out.acc > cfg.coverage_threshold
+            uncertain[i] |= (out.acc > cfg.uncertain_acc) & (out.acc <= cfg.coverage_threshold)
     return {"depth": depth, "covered": covered, "uncertain": uncertain, "acc": acc}
 
 

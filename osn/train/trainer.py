@@ -24,8 +24,7 @@ from osn.model.depth_order import OrderConstraints, in_front_pairs, order_constr
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
-                              resolve_anchor_guide_samples, resolve_depth_robust, resolve_final_label_trim, resolve_w_edge,
-                              resolve_w_hidden_smooth)
+                              resolve_anchor_guide_samples, resolve_depth_robust, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.losses import before_depth_opacity, disparity_curvature, edge_excess, sparse_depth_loss
 from osn.train.schedule import Phase, build_schedule
@@ -49,7 +48,7 @@ class Trainer:
         self.st = SceneTensors(inputs, device, resolve_anchor_guide_samples(cfg.anchor_guide_samples, cfg.field, inputs))
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
-        self.w_hidden = resolve_w_hidden_smooth(cfg.w_hidden_smooth, inputs.source)
+        self.w_hidden = cfg.w_hidden_smooth
         self.source = inputs.source
         K = self.st.K
         if self.st.unposed_pixels:
@@ -390,9 +389,9 @@ class Trainer:
         network and reshape the contacts toward whatever it accepts, so labels tight enough to
         need exact contacts pull the fields with them (recall falls); once the fields are final
         nothing moves, and tight labels only shrink the set toward the region where the contacts
-        are exact (the oracle's 0.2%; ``auto`` trims 0.3% on SfM's: :func:`resolve_final_label_trim`)."""
+        are exact."""
         final = phase.round == self.cfg.rounds + 1
-        return resolve_final_label_trim(self.cfg.final_label_trim, self.source) if final else self.cfg.label_trim
+        return self.cfg.final_label_trim if final else self.cfg.label_trim
 
     def step_scale(self, phase: Phase) -> dict[str, float]:
         """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""

@@ -54,18 +54,25 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     assert inputs.meta["untrusted_depths"] == [] and set(inputs.meta["consistency"]) == {str(r["id"]) for r in report.objects if "consistency" in r}
     # The count is taken on each object's own frames, camera and depths: the same on inputs that
     # keep every depth (normalised: a rigid motion and one unit, which change no share). By default
-    # every object but the anchor loses exactly the flagged depths, frame by frame.
+    # every object loses exactly the flagged depths, frame by frame; the anchor is normalised with
+    # them (its near plane, unit and box are those of the inputs that keep every depth).
     kept_all, _ = preprocess_dataset(sfm_scene, PreprocessConfig(on_failure="skip", drop_occluding="none"))
     for o in kept_all.objects:
         r, kept = by_id[o.id], inputs.object(o.id)
         flags = occluding_flags(o.cam_to_obj, o.sparse_pix, o.sparse_depth, kept_all.K, kept_all.width, kept_all.height)
         assert r["sparse_depths"] == sum(len(d) for d in o.sparse_depth), r
         assert r["occluding_depths"] == sum(int(f.sum()) for f in flags), r
-        assert r["occluding_dropped"] == (o.id != inputs.anchor), r
-        expected = [p[~f] if o.id != inputs.anchor else p for p, f in zip(o.sparse_pix, flags)]
+        assert r["occluding_dropped"], r
+        expected = [p[~f] for p, f in zip(o.sparse_pix, flags)]
         assert all(np.array_equal(a, b) for a, b in zip(kept.sparse_pix, expected)), r  # pixels: not renormalised
         assert [len(d) for d in kept.sparse_depth] == [len(p) for p in expected], r
-    # The tiny scene's SfM has phantoms too, in the room (81) and in the block (3, dropped).
+        if o.id == inputs.anchor:
+            assert (kept.near, kept.far) == (o.near, o.far)
+            # metres per unit: measured against ground truth at the depths kept (no phantom among them)
+            assert kept.unit_to_world == pytest.approx(o.unit_to_world, rel=0.01)
+            assert np.array_equal(kept.bbox, o.bbox) and np.array_equal(kept.cam_to_obj, o.cam_to_obj)
+            assert all(np.array_equal(a, b[~f]) for a, b, f in zip(kept.sparse_depth, o.sparse_depth, flags)), r
+    # The tiny scene's SfM has phantoms too, in the room (81) and in the block (3).
     assert by_id[0]["occluding_depths"] > 0 and sum(by_id[o.id]["occluding_depths"] for o in inputs.objects if o.id != 0) > 0
     # Small foreground objects (~30 px across at 128 px): registered within a few degrees, or
     # dropped with a message that names the counts and the remedy (never silently wrong).
@@ -89,8 +96,9 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         assert r["registered_frames"] <= most  # frames without a usable point are dropped after
         # the report's error is the final model's (after the robust bundle adjustment)
         assert 0 < r["reprojection_error_px"] < 2.0
-    for o in inputs.objects:
+    for o in [*kept_all.objects, *(o for o in inputs.objects if o.id != inputs.anchor)]:  # the unit: the median depth it is normalised from
         assert np.median(np.concatenate(o.sparse_depth)) == pytest.approx(1.0)
+    for o in inputs.objects:
         R = o.cam_to_obj[:, :3, :3]
         assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-6)
         assert o.unit_to_world is not None and o.unit_to_world > 0

@@ -14,12 +14,9 @@ from osn.train import TrainConfig
 from osn.train.config import (
     MIN_OBJECT_RESOLUTION,
     DEPTH_ROBUST_SFM,
-    FINAL_LABEL_TRIM_ORACLE,
-    FINAL_LABEL_TRIM_SFM,
     footprint_resolution,
     label_stride,
     resolve_depth_robust,
-    resolve_final_label_trim,
 )
 from tests.osn.train.common import small_config
 
@@ -66,6 +63,16 @@ def test_a_run_config_written_before_a_new_term_keeps_it_off(tmp_path: Path) -> 
     assert TrainConfig.from_yaml(path, run_config=True).w_distortion == 0.0
     assert TrainConfig.from_yaml(path).w_distortion == TrainConfig().w_distortion > 0
     assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), w_distortion=0.0)
+
+
+def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) -> None:
+    """A run's config.yaml written while ``anchor_coverage`` existed reads as today's config (the
+    option is dropped: the anchor covers as every object does); a user's config naming it is an error."""
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "anchor_coverage": 0.9}))
+    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
+    with pytest.raises(ValueError, match="anchor_coverage"):
+        TrainConfig.from_yaml(path)
 
 
 def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_resolution(tmp_path: Path) -> None:
@@ -136,16 +143,12 @@ def test_auto_depth_robustness_is_off_for_exact_depths_only() -> None:
     assert resolve_depth_robust(0, "colmap") == 0.0 and resolve_depth_robust(2.5, "oracle") == 2.5
 
 
-def test_auto_final_label_trim_is_tight_on_exact_contacts_only() -> None:
-    """``final_label_trim: auto``: 0.2% of a pair's rays on the oracle's exact contacts, 0.3% on
-    SfM's and anything else's (tighter than the rounds' 1%); a number is taken as it is, a word
-    other than auto refused."""
-    assert TrainConfig().final_label_trim == "auto"
-    assert resolve_final_label_trim("auto", "oracle") == FINAL_LABEL_TRIM_ORACLE == 0.002
-    assert resolve_final_label_trim("auto", "colmap") == resolve_final_label_trim("auto", "video") == FINAL_LABEL_TRIM_SFM
-    assert FINAL_LABEL_TRIM_ORACLE < FINAL_LABEL_TRIM_SFM == 0.003 < TrainConfig().label_trim
-    assert resolve_final_label_trim(0.005, "colmap") == 0.005 and resolve_final_label_trim(0, "oracle") == 0.0
-    with pytest.raises(ValueError, match="final_label_trim"):
-        TrainConfig(final_label_trim="loose")
-    with pytest.raises(ValueError, match="final_label_trim"):
-        TrainConfig(final_label_trim=1.5)
+def test_options_that_resolved_by_the_inputs_source_are_plain_numbers() -> None:
+    """``final_label_trim`` and ``w_hidden_smooth`` no longer resolve by the inputs' source: ``auto``
+    (which did) is refused, as are words and out-of-range numbers; the final phase's trim is
+    tighter than the rounds'."""
+    assert TrainConfig().final_label_trim == 0.002 < TrainConfig().label_trim and TrainConfig().w_hidden_smooth == 0.3
+    for key, bad in (("final_label_trim", "auto"), ("final_label_trim", "loose"), ("final_label_trim", 1.5),
+                     ("w_hidden_smooth", "auto"), ("w_hidden_smooth", -0.1)):
+        with pytest.raises(ValueError, match=key):
+            TrainConfig(**{key: bad})

@@ -13,8 +13,7 @@ import torch
 from osn.model.volume import render
 from osn.preprocess.inputs import normalise_scales
 from osn.preprocess.oracle import oracle_inputs
-from osn.train import Trainer, build_schedule
-from osn.train.config import resolve_anchor_coverage
+from osn.train import TrainConfig, Trainer, build_schedule
 from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
 from osn.train.losses import before_depth_opacity, disparity_curvature, edge_excess, sparse_depth_loss
@@ -92,42 +91,30 @@ def test_label_pool_drops_rays_with_a_semi_transparent_object(tiny_dataset: Path
         tr.step_stage1()
     flat = label_pixels(tr.st, cfg)
     c = render_alone_depths(tr.st, tr.fields, flat, cfg)
-    threshold = torch.full((tr.st.K,), 0.9)
-    threshold[tr.st.anchor] = resolve_anchor_coverage(cfg.anchor_coverage, "oracle")  # the anchor's own (0.9 here)
-    expected = ((c["acc"] > 0.05) & (c["acc"] <= threshold)).any(1)
+    expected = ((c["acc"] > 0.05) & (c["acc"] <= 0.9)).any(1)
     assert torch.equal(c["uncertain"], expected) and expected.any() and (~expected).any()
     tr.ensure_cache(tr.schedule[1])
     assert not torch.isin(tr.cache["flat"], flat[expected]).any()
     assert not render_alone_depths(tr.st, tr.fields, flat, dataclasses.replace(cfg, uncertain_acc=0.9))["uncertain"].any()
 
 
-def test_anchor_covers_label_rays_at_its_own_lower_opacity(tiny_dataset: Path) -> None:
-    """``anchor_coverage`` (0.5, SfM's ``auto``) instead of ``coverage_threshold`` (0.9) for the
-    anchor alone: the anchor covers exactly the rays where its opacity exceeds 0.5, the other
-    objects' coverage is unchanged, and rays the anchor gains (opacity in (0.5, 0.9]) join the
-    contested pool. ``auto`` is 0.5 on any source but the oracle's, 0.9 there."""
-    assert resolve_anchor_coverage("auto", "colmap") == 0.5 and resolve_anchor_coverage("auto", "oracle") == 0.9
-    assert resolve_anchor_coverage(0.7, "oracle") == 0.7
+def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_dataset: Path) -> None:
+    """The anchor covers a label ray as every object does, above ``coverage_threshold``, whatever
+    the inputs' source; a run's own config that still names the removed ``anchor_coverage`` reads,
+    a user's config that names it is refused."""
+    cfg = _cfg(coverage_threshold=0.5)
+    for source in ("oracle", "colmap"):
+        inputs = oracle_inputs(tiny_dataset)
+        inputs.source = source
+        tr = Trainer(inputs, cfg, torch.device("cpu"))
+        for _ in range(150):  # objects opaque enough to contest rays; the room behind them is not yet
+            tr.step_stage1()
+        flat = label_pixels(tr.st, cfg)
+        c = render_alone_depths(tr.st, tr.fields, flat, cfg)
+        assert torch.equal(c["covered"], c["acc"] > 0.5)
+        assert (c["covered"][:, tr.st.anchor] & (c["acc"][:, tr.st.anchor] <= 0.9)).any()  # the threshold is 0.5, not 0.9
     with pytest.raises(ValueError, match="anchor_coverage"):
-        _cfg(anchor_coverage=1.5)
-    cfg = _cfg(anchor_coverage=0.5)
-    tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
-    for _ in range(150):  # objects opaque enough to contest rays; the room behind them is not yet
-        tr.step_stage1()
-    flat = label_pixels(tr.st, cfg)
-    strict = dataclasses.replace(cfg, anchor_coverage=0.9)
-    c, c9 = render_alone_depths(tr.st, tr.fields, flat, cfg), render_alone_depths(tr.st, tr.fields, flat, strict)
-    a = tr.st.anchor
-    others = [k for k in range(tr.st.K) if k != a]
-    assert torch.equal(c["covered"][:, a], c["acc"][:, a] > 0.5) and torch.equal(c9["covered"][:, a], c9["acc"][:, a] > 0.9)
-    assert torch.equal(c["covered"][:, others], c9["covered"][:, others])
-    gained = c["covered"][:, a] & ~c9["covered"][:, a]
-    assert gained.any()
-    pool = build_label_pool(tr.st, tr.fields, cfg, 0)["flat"]
-    pool9 = build_label_pool(tr.st, tr.fields, strict, 0)["flat"]
-    assert set(pool9.tolist()) <= set(pool.tolist()) and len(pool) > len(pool9)
-    assert torch.isin(torch.tensor(sorted(set(pool.tolist()) - set(pool9.tolist()))), flat[gained]).all()
-
+        TrainConfig.from_dict({"anchor_coverage": 0.5})
 
 def test_scale_phase_warns_when_no_ray_constrains_overlapping_objects(tiny_dataset: Path, caplog) -> None:
     """Untrained fields are transparent, so no ray constrains a depth order: the scale phase
@@ -359,15 +346,15 @@ def test_hidden_anchor_strips_cross_objects_and_smoothing_them_flattens_the_hidd
     assert smooth < 0.75 * free, (smooth, free)  # measured 0.00081 against 0.00148 (fixed seeds)
 
 
-def test_hidden_anchor_term_auto_is_on_for_the_oracle_and_off_for_sfm(tiny_dataset: Path) -> None:
-    """``w_hidden_smooth: auto`` (the default) trains the oracle's inputs with the term and any
-    other source (SfM, a user's video) without; a number is itself; a word other than auto fails."""
-    from osn.train.config import W_HIDDEN_SMOOTH_ORACLE, resolve_w_hidden_smooth
-
-    auto = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
-    assert auto.w_hidden == W_HIDDEN_SMOOTH_ORACLE > 0 and auto.hidden_strips is not None
-    assert "hidden_smooth" in auto.step_stage1()
-    assert resolve_w_hidden_smooth("auto", "colmap") == 0.0 and resolve_w_hidden_smooth(0.5, "colmap") == 0.5
+def test_hidden_anchor_term_is_on_whatever_the_inputs_source(tiny_dataset: Path) -> None:
+    """The default ``w_hidden_smooth`` trains every input with the term, the oracle's and SfM's
+    alike (the source label changes nothing); a word is refused."""
+    for source in ("oracle", "colmap"):
+        inputs = oracle_inputs(tiny_dataset)
+        inputs.source = source
+        tr = Trainer(inputs, _cfg(), torch.device("cpu"))
+        assert tr.w_hidden == TrainConfig().w_hidden_smooth > 0 and tr.hidden_strips is not None
+        assert "hidden_smooth" in tr.step_stage1()
     with pytest.raises(ValueError, match="w_hidden_smooth"):
         _cfg(w_hidden_smooth="always")
 
@@ -580,18 +567,18 @@ def test_edge_term_is_reported_when_on_and_auto_is_off_on_the_oracle(tiny_datase
         _cfg(w_edge="sometimes")
 
 
-def test_final_phase_trims_by_the_inputs_source(tiny_dataset: Path) -> None:
-    """``final_label_trim: auto`` is resolved with the trainer's own inputs: the final scale phase
-    trims 0.2% on the oracle's exact contacts and 0.3% on SfM's; the rounds trim 1% on both."""
+def test_final_phase_trims_the_same_whatever_the_inputs_source(tiny_dataset: Path) -> None:
+    """The final scale phase trims ``final_label_trim`` (0.2% by default) on every input, the
+    rounds ``label_trim``; the source label changes neither."""
     trims = {}
     for source in ("oracle", "colmap"):
         inputs = oracle_inputs(tiny_dataset)
         inputs.source = source
-        tr = Trainer(inputs, _cfg(final_label_trim="auto", label_trim=0.01), torch.device("cpu"))
+        tr = Trainer(inputs, _cfg(label_trim=0.01), torch.device("cpu"))
         scale = [p for p in tr.schedule if p.name == "scale"]
         assert scale[-1].round == tr.cfg.rounds + 1 and all(p.round <= tr.cfg.rounds for p in scale[:-1])
         trims[source] = [tr.label_trim_at(p) for p in scale]
-    assert trims["oracle"] == [0.01, 0.01, 0.002] and trims["colmap"] == [0.01, 0.01, 0.003]
+    assert trims["oracle"] == trims["colmap"] == [0.01, 0.01, 0.002]
 
 
 def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tiny_dataset: Path, tmp_path: Path) -> None:
