@@ -8,7 +8,7 @@ scales, as `osn evaluate`'s "true scales" row) it prints:
   where (their silhouettes, or floaters far from them);
 * the anchor's rendered depth against the true depth (signed relative error: a field whose
   surfaces sit in front of the true ones reads negative), in the test views and, with
-  ``--training-views``, in the training frames;
+  ``--training-views``, in the training frames, there also by distance to the nearest object;
 * with ``--grid R[,R...]``, a colour grid's own ceiling: an R^3 trilinear RGB grid over the anchor
   pixels' true surface points fitted to the training frames' colours there (exact geometry, no
   density), scored on the same test pixels. What a grid of that resolution can give the anchor
@@ -150,12 +150,20 @@ def main(argv: list[str] | None = None) -> int:
         t_rgb, t_depth, t_ids = D.read_training_video(args.dataset, scene)
         train = sorted(scene.train_frames, key=lambda fr: fr.time_index)
     if args.training_views:
-        rel_t = []
+        rel_t, dist_t = [], []
         for i, f in enumerate(train):
             mask = (t_ids[i] == anchor_id) & np.isfinite(t_depth[i])
             r = run.render_view(None, f.time_index, np.ones(inp.num_objects), objects=[a])
             rel_t.append(r["depth"][mask] * unit / t_depth[i][mask] - 1.0)
-        print("anchor depth in the training frames: " + depth_summary(np.concatenate(rel_t)))
+            dist_t.append(distance_transform_edt(t_ids[i] == anchor_id)[mask])
+        rel_t, dist_t = np.concatenate(rel_t), np.concatenate(dist_t)
+        print("anchor depth in the training frames: " + depth_summary(rel_t))
+        # Next to the objects is where the contact bounds are read: a surface pulled toward the
+        # camera there cuts them tight.
+        for lo, hi in BINS:
+            b = (dist_t > lo) & (dist_t <= hi)
+            if b.any():
+                print(f"  ({lo:g}, {hi:g}] px from another object ({b.mean():.1%} of its pixels): " + depth_summary(rel_t[b]))
     if args.grid or args.planes:
         pts, cols = [], []
         for i, f in enumerate(train):

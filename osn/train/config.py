@@ -91,6 +91,10 @@ ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
 #: that matches what training does now; :meth:`TrainConfig.from_yaml` drops them from run configs.
 REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9}
+#: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
+#: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
+AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
+                               "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others"}
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -431,6 +435,10 @@ class TrainConfig:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
                 d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
+                if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
+                    raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
+                                     + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
+                                     + ": write the number into the file to resume or compare the run")
                 if isinstance(d.get("field"), dict):
                     d["field"] = {**FIELD_ADDED_LATER, **d["field"]}
             return cls.from_dict(d)

@@ -73,6 +73,10 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
     assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
     with pytest.raises(ValueError, match="anchor_coverage"):
         TrainConfig.from_yaml(path)
+    # One whose options resolved by the inputs' source names what they trained with.
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_hidden_smooth": "auto"}))
+    with pytest.raises(ValueError, match=r"config.yaml: written before w_hidden_smooth became one number.*0.3 on the oracle"):
+        TrainConfig.from_yaml(path, run_config=True)
 
 
 def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_resolution(tmp_path: Path) -> None:
