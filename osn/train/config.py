@@ -21,7 +21,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "hidden_strips",
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
-                 "free_band", "free_band_objects", "label_rays", "label_erode", "label_stride")
+                 "free_band", "free_band_objects", "label_rays", "label_stride")
 _FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
@@ -62,10 +62,7 @@ _RULES: dict[str, Rule] = {
     "device": _device(),
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
-    "w_before_depth": number(0.0),
     "w_hidden_smooth": number(0.0),
-    # A margin of 1 would empty the surface itself; 0 nothing.
-    "before_depth_margin": number(0.0, 1.0, lo_open=True, hi_open=True),
     "w_edge": _auto_or(number(0.0)),
     "edge_slope": number(0.0),
     "depth_robust": _auto_or(number(0.0)),
@@ -89,8 +86,9 @@ _RULES: dict[str, Rule] = {
 ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
                                "w_hidden_smooth": 0.0}
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
-#: that matches what training does now; :meth:`TrainConfig.from_yaml` drops them from run configs.
-REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9}
+#: that trains as today: :meth:`TrainConfig.from_yaml` drops them from a run's config at that value
+#: and refuses the run at any other.
+REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0}
 #: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
 #: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
 AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
@@ -256,16 +254,6 @@ class TrainConfig:
     distortion loss on an object's own pixels in stage 1 (how spread the weights are along the
     ray), so a pixel shows one surface instead of a fog. Unit: loss weight (the loss is
     unit-free). Neutral: 0 (term off)."""
-    w_before_depth: float = 0.0
-    """addition (experiments/2026-11-28-before-depth-free-space.md,
-    experiments/2026-11-28-two-more-levers-room-bound.md): Weight of the stage-1 term that empties
-    the space before each sparse depth: the squared opacity every object but the anchor reaches
-    before ``before_depth_margin`` of the depth. Unit: loss weight. Neutral: 0 (term off, the
-    default)."""
-    before_depth_margin: float = 0.95
-    """addition (experiments/2026-11-28-before-depth-free-space.md): Where ``w_before_depth``'s
-    term stops along a sparse-depth ray. Unit: fraction of the sparse depth, in (0, 1). Neutral:
-    none of its own (``w_before_depth: 0`` switches the term off)."""
     w_hidden_smooth: float = 0.3
     """addition (experiments/2026-11-28-hidden-anchor-smoothness.md,
     experiments/2026-11-29-lost-recall-from-sfm-inputs.md): Weight of the anchor's disparity
@@ -366,10 +354,6 @@ class TrainConfig:
     rays than this times its opposite pair's is left out of the labels: those few rays are a field
     filling a gap it cannot resolve. Unit: ratio of ray counts, in [0, 1]. Neutral: 0 (every pair
     kept)."""
-    label_erode: int = 0
-    """addition (experiments/2026-11-25-longer-field-training-best-of-n-ceiling.md,
-    experiments/2026-11-26-limiting-bounds-per-run.md): The label pool takes only pixels at least
-    this far inside their mask. Unit: pixels. Neutral: 0 (silhouette pixels kept, the default)."""
     label_stride: int = 0
     """addition (not measured): The label pool takes every ``label_stride``-th labelled pixel per
     axis; 0 picks the stride that keeps about :data:`AUTO_LABEL_SIDE` pixels along the longer
@@ -434,11 +418,14 @@ class TrainConfig:
         try:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
-                d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
                 if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
                     raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
                                      + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
                                      + ": write the number into the file to resume or compare the run")
+                if gone := [k for k, v in d.items() if k in REMOVED_OPTIONS and v != REMOVED_OPTIONS[k]]:
+                    raise ValueError("trained with " + ", ".join(f"{k}: {d[k]!r}" for k in gone) + ", which this "
+                                     "version no longer has (it trains as " + ", ".join(f"{k}: {REMOVED_OPTIONS[k]!r}" for k in gone) + ")")
+                d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
                 if isinstance(d.get("field"), dict):
                     d["field"] = {**FIELD_ADDED_LATER, **d["field"]}
             return cls.from_dict(d)

@@ -13,7 +13,6 @@ from __future__ import annotations
 import logging
 
 import torch
-import torch.nn.functional as F
 
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
@@ -26,16 +25,8 @@ log = logging.getLogger(__name__)
 
 def label_pixels(st: SceneTensors, cfg: TrainConfig) -> torch.Tensor:
     """Flat ``(P,)`` (frame * HW + pixel) indices of the label pool candidates: every
-    ``label_stride``-th pixel per axis, labelled, away from mask boundaries by ``label_erode``
-    (independent coverage is unreliable on silhouettes)."""
-    lab = st.labels.reshape(st.T, st.H, st.W)
-    keep = lab >= 0
-    e = cfg.label_erode
-    if e > 0:
-        padded = F.pad(lab[:, None].float(), (e, e, e, e), mode="replicate")
-        mx = F.max_pool2d(padded, 2 * e + 1, stride=1)[:, 0]
-        mn = -F.max_pool2d(-padded, 2 * e + 1, stride=1)[:, 0]
-        keep &= (mx == lab) & (mn == lab)
+    ``label_stride``-th labelled pixel per axis, silhouettes included."""
+    keep = st.labels.reshape(st.T, st.H, st.W) >= 0
     stride = label_stride(cfg.label_stride, st.H, st.W)
     grid = torch.zeros(st.H, st.W, dtype=torch.bool, device=st.device)
     grid[::stride, ::stride] = True

@@ -1,6 +1,6 @@
 """The stage-1 terms that are more than a mean squared error, as functions of rendered rays.
 
-Each takes what :func:`osn.model.volume.render` returns (or the rays to render) and gives a scalar
+Each takes what :func:`osn.model.volume.render` returns and gives a scalar
 loss; :class:`osn.train.trainer.Trainer` picks the rays and weights them (docs/training.md, Schedule).
 """
 
@@ -9,7 +9,6 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from osn.model.volume import ObjectRays, render
 
 
 def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float = 0.0) -> torch.Tensor:
@@ -30,25 +29,6 @@ def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float =
     # Floored so a batch that fits exactly (median residual 0) stays finite: log1p(0 / tiny) = 0.
     c2 = (robust * robust * r2.detach().median()).clamp_min(1e-12)
     return (c2 * torch.log1p(r2 / c2)).mean()
-
-
-def before_depth_opacity(rays: ObjectRays, dirs: torch.Tensor, depth: torch.Tensor, margin: float, n_samples: int,
-                         generator: torch.Generator | None = None) -> torch.Tensor:
-    """Mean squared opacity ``(,)`` one object reaches on its sparse-depth rays before ``margin``
-    times their depths ``depth (P,)`` (its own unit; ``rays``: its :class:`ObjectRays` on those
-    ``P`` rays, ``dirs (P, 3)``).
-
-    The sparse depth says the ray is empty up to the surface. Photometric terms cannot say so
-    where the camera moves little around an object (the space before its surface lies inside its
-    silhouette in every frame), and the depth term on ``sum w t`` empties it only slowly: the
-    oracle's sofa kept opacity before its surface on its own pixels, with exact depths there
-    (docs/training.md).
-    The margin leaves the soft surface itself alone. Not for the anchor: a ray grazing a floor
-    passes within a voxel of it long before its depth.
-    """
-    lo = rays.t_range.expand(len(depth), 2)[:, 0]
-    before = ObjectRays(rays.field, rays.cam_to_obj, rays.present, torch.stack([lo, depth * margin], 1), rays.guide)
-    return render([before], dirs, n_samples, generator).acc.square().mean()
 
 
 def edge_excess(depth: torch.Tensor, acc: torch.Tensor, inner_depth: torch.Tensor, inner_acc: torch.Tensor,

@@ -26,7 +26,7 @@ from osn.preprocess.inputs import SceneInputs
 from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
                               resolve_anchor_guide_samples, resolve_depth_robust, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
-from osn.train.losses import before_depth_opacity, disparity_curvature, edge_excess, sparse_depth_loss
+from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
 
@@ -240,11 +240,6 @@ class Trainer:
             # ray shortens) then pushes its surfaces behind the true ones.
             l_acc = (1.0 - out.acc).square().mean()
             total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
-            if cfg.w_before_depth > 0 and k != st.anchor and len(d_gt):
-                l_before = before_depth_opacity(rays[0].take(torch.arange(n_rgb, len(p), device=self.device)),
-                                                st.dirs[p[n_rgb:]], d_gt, cfg.before_depth_margin, cfg.samples, self.gen)
-                total = total + cfg.w_before_depth * l_before
-                losses["before_depth"] = losses.get("before_depth", 0.0) + l_before.item() / st.K
             if cfg.w_distortion > 0:
                 # The object's own pixels show one surface: a fog spread along the ray has the right
                 # expected depth where sparse depths hold it, and any depth elsewhere (docs/training.md).

@@ -73,6 +73,10 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
     assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
     with pytest.raises(ValueError, match="anchor_coverage"):
         TrainConfig.from_yaml(path)
+    # One trained with a removed option away from today's behaviour is refused, naming it.
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_before_depth": 1.0}))
+    with pytest.raises(ValueError, match=r"trained with w_before_depth: 1.0, which this version no longer has"):
+        TrainConfig.from_yaml(path, run_config=True)
     # One whose options resolved by the inputs' source names what they trained with.
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_hidden_smooth": "auto"}))
     with pytest.raises(ValueError, match=r"config.yaml: written before w_hidden_smooth became one number.*0.3 on the oracle"):
