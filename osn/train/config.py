@@ -22,7 +22,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "hidden_strips",
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
                  "free_band", "free_band_objects", "label_rays", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "uncertain_acc", "scale_lr_final")
+_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
     """``auto`` (resolved per input source by :func:`by_source`) or a value ``rule`` accepts."""
@@ -88,7 +88,8 @@ ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
 #: that trains as today: :meth:`TrainConfig.from_yaml` drops them from a run's config at that value
 #: and refuses the run at any other.
-REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0}
+REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
+                                   "uncertain_acc": "coverage_threshold"}  # a name: that option's value
 #: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
 #: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
 AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
@@ -364,10 +365,6 @@ class TrainConfig:
     paper names no threshold): An object covers a label-pool ray when its opacity alone exceeds
     this; a pool ray needs its labelled object and another one covering it. Unit: opacity, in
     [0, 1]. Neutral: none."""
-    uncertain_acc: float = 0.9
-    """addition (experiments/2026-11-25-valid-set-scene-suite.md): The label pool drops rays on
-    which some object's opacity lies in ``(uncertain_acc, coverage_threshold]``. Unit: opacity, in
-    [0, 1]. Neutral: the value of ``coverage_threshold`` (no ray dropped, the default)."""
     valid_threshold: float = 0.95
     """paper (Sec. 3.3, below Eq. 4: a score above 0.95): A field step's scale vector must score
     above this; when none of ``candidates`` does, the best one is used and counted in
@@ -422,9 +419,10 @@ class TrainConfig:
                     raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
                                      + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
                                      + ": write the number into the file to resume or compare the run")
-                if gone := [k for k, v in d.items() if k in REMOVED_OPTIONS and v != REMOVED_OPTIONS[k]]:
+                today = {k: d.get(n, getattr(cls, n)) if isinstance(n, str) else n for k, n in REMOVED_OPTIONS.items()}
+                if gone := [k for k, v in d.items() if k in today and v != today[k]]:
                     raise ValueError("trained with " + ", ".join(f"{k}: {d[k]!r}" for k in gone) + ", which this "
-                                     "version no longer has (it trains as " + ", ".join(f"{k}: {REMOVED_OPTIONS[k]!r}" for k in gone) + ")")
+                                     "version no longer has (it trains as " + ", ".join(f"{k}: {today[k]!r}" for k in gone) + ")")
                 d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
                 if isinstance(d.get("field"), dict):
                     d["field"] = {**FIELD_ADDED_LATER, **d["field"]}

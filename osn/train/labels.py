@@ -39,17 +39,13 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     """Every object rendered alone on training pixels ``flat (P,)``.
 
     Returns ``depth (P, K)`` (independent planar depth in the object's own unit), ``acc (P, K)``
-    (opacity), ``covered (P, K)`` (``acc > coverage_threshold``) and ``uncertain (P,)``: some
-    object's ``acc`` is above ``uncertain_acc`` and not above ``coverage_threshold``.
+    (opacity) and ``covered (P, K)`` (``acc > coverage_threshold``). A ray an object covers
+    semi-transparently stays in the pool: a thin part is semi-transparent wherever it is, and
+    dropping every ray it touches lost the bounds it sets (factory's robot arm; docs/training.md).
     """
     HW = st.H * st.W
     depth = torch.full((len(flat), st.K), float("inf"), device=st.device)  # no surface where absent
     covered = torch.zeros(len(flat), st.K, dtype=torch.bool, device=st.device)
-    # Some object is semi-transparent on the ray (acc between uncertain_acc and the coverage
-    # threshold): the ray can be dropped. The default (uncertain_acc = coverage_threshold) drops
-    # none: a thin part is semi-transparent wherever it is, and dropping every ray it touches lost
-    # the bounds it sets (factory's robot arm; docs/training.md).
-    uncertain = torch.zeros(len(flat), dtype=torch.bool, device=st.device)
     acc = torch.zeros(len(flat), st.K, device=st.device)
     one = torch.ones(st.K, device=st.device)
     frames_all, pix_all = flat // HW, flat % HW
@@ -62,8 +58,7 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
             depth[i, k] = out.normalised_depth()
             acc[i, k] = out.acc
             covered[i, k] = out.acc > cfg.coverage_threshold
-            uncertain[i] |= (out.acc > cfg.uncertain_acc) & (out.acc <= cfg.coverage_threshold)
-    return {"depth": depth, "covered": covered, "uncertain": uncertain, "acc": acc}
+    return {"depth": depth, "covered": covered, "acc": acc}
 
 
 def contested_rays(st: SceneTensors, flat: torch.Tensor, depth: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
@@ -93,17 +88,16 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
     """
     flat = label_pixels(st, cfg)
     c = render_alone_depths(st, fields, flat, cfg)
-    keep = contested_rays(st, flat, c["depth"], c["covered"]) & ~c["uncertain"]
+    keep = contested_rays(st, flat, c["depth"], c["covered"])
     pool = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
     pool["gt"] = st.labels.reshape(-1)[pool["flat"]]
     pool["constraints"] = order_constraints(pool["depth"], pool["covered"], pool["gt"], cfg.pair_minority)
     if not len(pool["flat"]):
-        # No ray constrains any depth order (fields still transparent, or every ray dropped
-        # as semi-transparent): every sample is labelled valid, which says nothing.
+        # No ray constrains any depth order (fields still transparent): every sample is
+        # labelled valid, which says nothing.
         log.warning(
-            "scale phase at iteration %d: no contested ray among %d labelled pixels (%d semi-transparent); "
-            "the network learns no depth order (fields not opaque yet? see uncertain_acc)",
-            iteration, len(flat), int(c["uncertain"].sum()),
+            "scale phase at iteration %d: no contested ray among %d labelled pixels; the network learns "
+            "no depth order (fields not opaque yet? see coverage_threshold)", iteration, len(flat),
         )
     return pool
 

@@ -29,7 +29,7 @@ NEUTRAL = {
     "w_distortion": 0.0, "w_hidden_smooth": 0.0, "w_alone": 0.0, "w_edge": 0.0,
     "free_space": "none", "free_band": 0, "free_band_objects": 0, "scale_lr_final": 1.0, "label_rays": 0,
     "label_replay": 0.0, "label_trim": 0.0, "final_label_trim": "label_trim", "pair_minority": 0.0,
-    "label_stride": 1, "uncertain_acc": "coverage_threshold",
+    "label_stride": 1,
     "field.tv_density": 0.0, "field.object_resolution": 0, "field.anchor_planes": 0,
 }
 #: Additions switched off by another option (their docstrings: "none of its own").

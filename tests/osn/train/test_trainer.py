@@ -82,22 +82,6 @@ def test_without_depth_there_is_no_depth_loss(tiny_dataset: Path) -> None:
     assert tr.step_stage1()["depth"] == 0.0 and tr.step_fields()["depth"] == 0.0
 
 
-def test_label_pool_drops_rays_with_a_semi_transparent_object(tiny_dataset: Path) -> None:
-    """``uncertain_acc`` below the coverage threshold removes every ray on which some object's
-    independent opacity is in between from the contested pool; equal to it, nothing is removed."""
-    cfg = _cfg(coverage_threshold=0.9, uncertain_acc=0.05)
-    tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
-    for _ in range(10):  # partly trained fields: opacities spread over (0, 1)
-        tr.step_stage1()
-    flat = label_pixels(tr.st, cfg)
-    c = render_alone_depths(tr.st, tr.fields, flat, cfg)
-    expected = ((c["acc"] > 0.05) & (c["acc"] <= 0.9)).any(1)
-    assert torch.equal(c["uncertain"], expected) and expected.any() and (~expected).any()
-    tr.ensure_cache(tr.schedule[1])
-    assert not torch.isin(tr.cache["flat"], flat[expected]).any()
-    assert not render_alone_depths(tr.st, tr.fields, flat, dataclasses.replace(cfg, uncertain_acc=0.9))["uncertain"].any()
-
-
 def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_dataset: Path) -> None:
     """The anchor covers a label ray as every object does, above ``coverage_threshold``, whatever
     the inputs' source; a run's own config that still names the removed ``anchor_coverage`` reads,
@@ -119,7 +103,7 @@ def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_datase
 def test_scale_phase_warns_when_no_ray_constrains_overlapping_objects(tiny_dataset: Path, caplog) -> None:
     """Untrained fields are transparent, so no ray constrains a depth order: the scale phase
     would label every sample valid and learn nothing; it says so. Trained fields do not warn."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(coverage_threshold=0.9, uncertain_acc=0.05), torch.device("cpu"))
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(coverage_threshold=0.9), torch.device("cpu"))
     with caplog.at_level(logging.WARNING):
         tr.ensure_cache(tr.schedule[1])
     assert len(tr.cache["flat"]) == 0
