@@ -352,7 +352,9 @@ def test_foreign_or_damaged_run_directories_give_one_line(broken_runs, case: str
 
 
 def test_a_first_version_checkpoint_still_loads(trained: Path, tmp_path: Path) -> None:
-    """A checkpoint as the first ``osn train`` wrote it (no version, no replay buffer) loads through the weights-only reader and renders as the run it came from."""
+    """A checkpoint as the first ``osn train`` wrote it (no version, no replay buffer, a config naming
+    the since removed ``field.tv_density``) loads through the weights-only reader and renders as the
+    run it came from."""
     from osn.model.run import load_run
 
     run = tmp_path / "v1"
@@ -360,6 +362,7 @@ def test_a_first_version_checkpoint_still_loads(trained: Path, tmp_path: Path) -
     ck = torch.load(run / "checkpoint.pt", weights_only=True)
     for key in ("version", "positives"):
         ck.pop(key, None)
+    ck["config"]["field"]["tv_density"] = 0.0
     torch.save(ck, run / "checkpoint.pt")
     old, new = load_run(run), load_run(trained)
     s = np.ones(new.inputs.num_objects)

@@ -82,15 +82,6 @@ class Field(nn.Module):
         """Optimiser parameter groups: grids and networks learn at different rates (as TensoRF)."""
         raise NotImplementedError
 
-    def density_tv(self) -> torch.Tensor:
-        """Total variation (mean squared neighbour difference) of the raw density parameters, a scalar.
-
-        A smoothness prior for space no training ray constrains: with Adam its gradient moves
-        unobserved voxels towards their neighbours, so surfaces hidden in every frame (the floor
-        under an object) are continued instead of left empty.
-        """
-        raise NotImplementedError
-
 
 def trilinear(grid: torch.Tensor, resolution: int, xn: torch.Tensor) -> torch.Tensor:
     """Trilinear lookup of a channels-last grid ``(R^3, C)`` (x fastest, as ``grid_sample``'s
@@ -219,11 +210,6 @@ class DenseGridField(Field):
     def param_groups(self, lr_grid: float, lr_net: float) -> list[dict]:
         return [{"params": [self.grid] + ([self.planes] if self.planes is not None else []), "lr": lr_grid}]
 
-    def density_tv(self) -> torch.Tensor:
-        r = self.resolution
-        g = self.grid[:, 0].view(r, r, r)  # (z, y, x)
-        return sum(torch.diff(g, dim=d).square().mean() for d in range(3))
-
 
 def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
     """NeRF frequency encoding ``[sin(2^i x), cos(2^i x)]`` for i < freqs (without x itself).
@@ -321,15 +307,15 @@ class TensoRFVM(Field):
         grids = [self.density_planes, self.density_lines, self.app_planes, self.app_lines]
         return [{"params": grids, "lr": lr_grid}, {"params": list(self.basis.parameters()) + list(self.mlp.parameters()), "lr": lr_net}]
 
-    def density_tv(self) -> torch.Tensor:
-        p, ln = self.density_planes, self.density_lines  # TensoRF's TV on the VM factors
-        return torch.diff(p, dim=2).square().mean() + torch.diff(p, dim=3).square().mean() + torch.diff(ln, dim=2).square().mean()
-
 
 #: ``field`` options added after runs were first written, with the value that trained those runs
 #: (``TrainConfig.from_yaml(..., run_config=True)`` fills them in; ``load_run`` reads each field's
 #: size and planes from the checkpoint itself).
 FIELD_ADDED_LATER: dict[str, Any] = {"object_resolution": 0, "anchor_planes": 0}
+#: ``field`` options that are gone, with the value that trains as today (the term off): a run's
+#: config at that value reads without them (``TrainConfig.from_yaml(..., run_config=True)``), and
+#: ``load_run`` ignores them (they shaped training, not the fields it renders).
+FIELD_REMOVED_OPTIONS: dict[str, Any] = {"tv_density": 0.0}
 
 
 #: Most voxels per axis of a grid (the paper's largest is 640) and texels per side of a plane:
@@ -346,7 +332,6 @@ _FIELD_RULES: dict[str, Rule] = {
     # A fractional count (1.5 layers) would crash later, as a traceback.
     **{name: integer(1, 4096) for name in ("density_components", "appearance_components", "app_dim", "hidden")},
     **{name: number(0.0, lo_open=True, what="a positive learning rate") for name in ("lr_grid", "lr_net")},
-    "tv_density": number(0.0),
     "object_resolution": Rule(lambda v: v == "auto" or integer(0, MAX_RESOLUTION).ok(v), f"auto or an integer in 0..{MAX_RESOLUTION}"),
     # Bilinear interpolation needs 2 texels per side; 0 = no planes.
     "anchor_planes": Rule(lambda v: v == "auto" or (integer(0, MAX_PLANE_SIZE).ok(v) and v != 1),
@@ -405,11 +390,6 @@ class FieldConfig:
     """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam at 0.001): Adam
     learning rate of the fields' networks (TensoRF's appearance basis and colour MLP; a dense field
     has none). Unit: learning rate. Neutral: none (must be positive)."""
-    tv_density: float = 0.0
-    """addition (experiments/2026-11-24-measurements-two-cores.md,
-    experiments/2026-11-25-longer-field-training-best-of-n-ceiling.md): Weight of a total-variation
-    prior on each field's raw density (:meth:`Field.density_tv`) in the stage-1 objective, for
-    space no ray constrains. Unit: loss weight. Neutral: 0 (term off, the default)."""
     object_resolution: int | str = "auto"
     """addition (experiments/2026-11-27-object-resolution-anchor-planes.md): Final voxels per axis
     of every object's field but the anchor's (at most ``resolution``), grown on the anchor's

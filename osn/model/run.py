@@ -18,7 +18,7 @@ import torch
 
 from scenecore import dataset as D
 from scenecore.cameras import pixel_rays
-from osn.model.fields import Field, FieldConfig, make_field, saved_plane_size
+from osn.model.fields import FIELD_REMOVED_OPTIONS, Field, FieldConfig, make_field, saved_plane_size
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
@@ -210,7 +210,7 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     dev = torch.device(device)
     cfg = ckpt["config"]
     try:  # a checkpoint of another field kind, size or layout
-        fcfg = FieldConfig(**cfg["field"])
+        fcfg = FieldConfig(**{k: v for k, v in cfg["field"].items() if k not in FIELD_REMOVED_OPTIONS})
         fields = []
         for o, r, sd in zip(inputs.objects, ckpt["resolutions"], ckpt["fields"]):
             f = make_field(fcfg, torch.from_numpy(o.bbox).float(), resolution=r, planes=saved_plane_size(sd))

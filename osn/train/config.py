@@ -13,7 +13,7 @@ import yaml
 from scenecore.cameras import project
 from scenecore.config import Rule, choice, from_dict, integer, number, validate
 
-from osn.model.fields import FIELD_ADDED_LATER, FieldConfig
+from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS, FieldConfig
 from osn.preprocess.inputs import SceneInputs
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
@@ -420,12 +420,15 @@ class TrainConfig:
                                      + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
                                      + ": write the number into the file to resume or compare the run")
                 today = {k: d.get(n, getattr(cls, n)) if isinstance(n, str) else n for k, n in REMOVED_OPTIONS.items()}
-                if gone := [k for k, v in d.items() if k in today and v != today[k]]:
-                    raise ValueError("trained with " + ", ".join(f"{k}: {d[k]!r}" for k in gone) + ", which this "
+                field = d.get("field") if isinstance(d.get("field"), dict) else {}
+                today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
+                named = {**d, **{f"field.{k}": v for k, v in field.items()}}
+                if gone := [k for k, v in named.items() if k in today and v != today[k]]:
+                    raise ValueError("trained with " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this "
                                      "version no longer has (it trains as " + ", ".join(f"{k}: {today[k]!r}" for k in gone) + ")")
                 d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
                 if isinstance(d.get("field"), dict):
-                    d["field"] = {**FIELD_ADDED_LATER, **d["field"]}
+                    d["field"] = {**FIELD_ADDED_LATER, **{k: v for k, v in d["field"].items() if k not in FIELD_REMOVED_OPTIONS}}
             return cls.from_dict(d)
         except (ValueError, TypeError, yaml.YAMLError) as e:
             raise ValueError(f"{path}: {e}") from None

@@ -197,10 +197,6 @@ class Trainer:
         out = self._render_alone(self.st.anchor, strips.reshape(-1))
         return disparity_curvature(out.depth.reshape(strips.shape), out.acc.reshape(strips.shape))
 
-    def _tv(self, k: int) -> torch.Tensor | float:
-        w = self.cfg.field.tv_density
-        return w * self.fields[k].density_tv() if w > 0 else 0.0
-
     # ---- stage 1 -------------------------------------------------------------------------
 
     def step_stage1(self) -> dict[str, float]:
@@ -239,7 +235,7 @@ class Trainer:
             # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
             # ray shortens) then pushes its surfaces behind the true ones.
             l_acc = (1.0 - out.acc).square().mean()
-            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc + self._tv(k)
+            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc
             if cfg.w_distortion > 0:
                 # The object's own pixels show one surface: a fog spread along the ray has the right
                 # expected depth where sparse depths hold it, and any depth elsewhere (docs/training.md).
@@ -303,7 +299,7 @@ class Trainer:
         lab = st.labels[frames, p]
         seg_ok = lab >= 0
         l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
-        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg + sum(self._tv(k) for k in range(st.K))
+        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg
         out_losses = {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
         if cfg.w_alone > 0:
             # The stage-1 objective keeps each object's own geometry (its silhouette, opacity,

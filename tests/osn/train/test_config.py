@@ -80,6 +80,13 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
     # A removed option's neutral value may be another option's: uncertain_acc at coverage_threshold.
     path.write_text(yaml.safe_dump({**TrainConfig(coverage_threshold=0.5).to_dict(), "uncertain_acc": 0.5}))
     assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig(coverage_threshold=0.5)
+    # A removed field option likewise: read at its neutral value, refused at another.
+    d = TrainConfig().to_dict()
+    path.write_text(yaml.safe_dump({**d, "field": {**d["field"], "tv_density": 0.0}}))
+    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
+    path.write_text(yaml.safe_dump({**d, "field": {**d["field"], "tv_density": 0.1}}))
+    with pytest.raises(ValueError, match=r"trained with field.tv_density: 0.1, which this version no longer has"):
+        TrainConfig.from_yaml(path, run_config=True)
     # One whose options resolved by the inputs' source names what they trained with.
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_hidden_smooth": "auto"}))
     with pytest.raises(ValueError, match=r"config.yaml: written before w_hidden_smooth became one number.*0.3 on the oracle"):

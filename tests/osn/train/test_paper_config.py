@@ -30,7 +30,7 @@ NEUTRAL = {
     "free_space": "none", "free_band": 0, "free_band_objects": 0, "scale_lr_final": 1.0, "label_rays": 0,
     "label_replay": 0.0, "label_trim": 0.0, "final_label_trim": "label_trim", "pair_minority": 0.0,
     "label_stride": 1,
-    "field.tv_density": 0.0, "field.object_resolution": 0, "field.anchor_planes": 0,
+    "field.object_resolution": 0, "field.anchor_planes": 0,
 }
 #: Additions switched off by another option (their docstrings: "none of its own").
 SWITCHED_BY_OTHERS = {"hidden_strips", "edge_rays", "edge_slope", "free_rays"}
