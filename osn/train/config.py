@@ -13,7 +13,8 @@ import yaml
 from scenecore.cameras import project
 from scenecore.config import Rule, choice, from_dict, integer, number, validate
 
-from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS, FieldConfig
+from osn.model.fields import FieldConfig
+from osn.train.run_config import upgrade_run_config
 from osn.preprocess.inputs import SceneInputs
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
@@ -79,21 +80,6 @@ _RULES: dict[str, Rule] = {
     "valid_threshold": number(0.0, 1.0, hi_open=True),
     "free_space": choice("none", "anchor", "objects", "ordered", "all"),
 }
-
-
-#: Options added after runs were first written, with the value that trained those runs (the
-#: term off); :meth:`TrainConfig.from_yaml` fills them in for a run's own ``config.yaml``.
-ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
-                               "w_hidden_smooth": 0.0}
-#: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
-#: that trains as today: :meth:`TrainConfig.from_yaml` drops them from a run's config at that value
-#: and refuses the run at any other.
-REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
-                                   "uncertain_acc": "coverage_threshold"}  # a name: that option's value
-#: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
-#: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
-AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
-                               "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others"}
 
 
 #: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
@@ -408,27 +394,12 @@ class TrainConfig:
         """Read a YAML config; every error is a ``ValueError`` prefixed with ``path``.
 
         Omitted keys take the defaults, except with ``run_config`` (a run's own ``config.yaml``,
-        which lists every key it trained with): there a key it lacks was added after it was
-        written and takes the value it trained with (:data:`ADDED_LATER`), so resuming or
-        comparing an older run does not silently switch a new term on.
+        which lists every key it trained with), read through :func:`osn.train.run_config.upgrade_run_config`.
         """
         try:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
-                if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
-                    raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
-                                     + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
-                                     + ": write the number into the file to resume or compare the run")
-                today = {k: d.get(n, getattr(cls, n)) if isinstance(n, str) else n for k, n in REMOVED_OPTIONS.items()}
-                field = d.get("field") if isinstance(d.get("field"), dict) else {}
-                today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
-                named = {**d, **{f"field.{k}": v for k, v in field.items()}}
-                if gone := [k for k, v in named.items() if k in today and v != today[k]]:
-                    raise ValueError("trained with " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this "
-                                     "version no longer has (it trains as " + ", ".join(f"{k}: {today[k]!r}" for k in gone) + ")")
-                d = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
-                if isinstance(d.get("field"), dict):
-                    d["field"] = {**FIELD_ADDED_LATER, **{k: v for k, v in d["field"].items() if k not in FIELD_REMOVED_OPTIONS}}
+                d = upgrade_run_config(d, cls)
             return cls.from_dict(d)
         except (ValueError, TypeError, yaml.YAMLError) as e:
             raise ValueError(f"{path}: {e}") from None

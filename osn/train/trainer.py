@@ -48,7 +48,6 @@ class Trainer:
         self.st = SceneTensors(inputs, device, resolve_anchor_guide_samples(cfg.anchor_guide_samples, cfg.field, inputs))
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
         self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
-        self.w_hidden = cfg.w_hidden_smooth
         self.source = inputs.source
         K = self.st.K
         if self.st.unposed_pixels:
@@ -82,7 +81,7 @@ class Trainer:
         self.in_front: frozenset[tuple[int, int]] = frozenset()
         self.free = self._free_pixels()
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
-        self.hidden_strips = self.st.hidden_anchor_strips(HIDDEN_STRIP_LENGTH) if self.w_hidden > 0 else None
+        self.hidden_strips = self.st.hidden_anchor_strips(HIDDEN_STRIP_LENGTH) if cfg.w_hidden_smooth > 0 else None
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
@@ -242,9 +241,9 @@ class Trainer:
                 l_dist = out.distortion[:n_rgb].mean()
                 total = total + cfg.w_distortion * l_dist
                 losses["distortion"] += l_dist.item() / st.K
-            if self.w_hidden > 0 and k == st.anchor:
+            if cfg.w_hidden_smooth > 0 and k == st.anchor:
                 l_hidden = self._hidden_loss()
-                total = total + self.w_hidden * l_hidden
+                total = total + cfg.w_hidden_smooth * l_hidden
                 losses["hidden_smooth"] = l_hidden.item()
             l_free = self._free_loss(k)
             total = total + cfg.w_free * l_free

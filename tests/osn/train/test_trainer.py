@@ -317,7 +317,7 @@ def test_hidden_anchor_term_is_on_whatever_the_inputs_source(tiny_dataset: Path)
         inputs = oracle_inputs(tiny_dataset)
         inputs.source = source
         tr = Trainer(inputs, _cfg(), torch.device("cpu"))
-        assert tr.w_hidden == TrainConfig().w_hidden_smooth > 0 and tr.hidden_strips is not None
+        assert tr.cfg.w_hidden_smooth == TrainConfig().w_hidden_smooth > 0 and tr.hidden_strips is not None
         assert "hidden_smooth" in tr.step_stage1()
     with pytest.raises(ValueError, match="w_hidden_smooth"):
         _cfg(w_hidden_smooth="always")

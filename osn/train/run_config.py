@@ -1,0 +1,50 @@
+"""Reading a run's own ``config.yaml`` written by an older version: options added or removed since.
+
+A run's config lists every key it trained with, so a key it lacks was added after it was written,
+and a key it has that is gone was removed since. Resuming or comparing such a run must switch no
+term on or off: :func:`upgrade_run_config` fills in and drops keys at the values that train the
+same, and refuses, naming the key, where that cannot be.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS
+
+#: Options added after runs were first written, with the value that trained those runs (the
+#: term off); :func:`upgrade_run_config` fills them in.
+ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
+                               "w_hidden_smooth": 0.0}
+#: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
+#: that trains as today: :func:`upgrade_run_config` drops them at that value and refuses any other.
+REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
+                                   "uncertain_acc": "coverage_threshold"}  # a name: that option's value
+#: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
+#: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
+AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
+                               "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others"}
+
+
+def upgrade_run_config(d: dict[str, Any], defaults: Any) -> dict[str, Any]:
+    """A run's own ``config.yaml`` (every key it trained with) as today's options: keys added since
+    take the value it trained with (:data:`ADDED_LATER`), removed ones are dropped where they held
+    the value that trains as today (:data:`REMOVED_OPTIONS`), so resuming or comparing an older run
+    switches no term on or off. ``defaults``: what gives an option's default (the config class).
+    ``ValueError`` naming the key where it cannot be read so."""
+    if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
+        raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
+                         + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
+                         + ": write the number into the file to resume or compare the run")
+    field = d.get("field") if isinstance(d.get("field"), dict) else None
+    # Each removed option's value today (a name: that option's value in this config).
+    today = {k: d.get(n, getattr(defaults, n)) if isinstance(n, str) else n for k, n in REMOVED_OPTIONS.items()}
+    today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
+    named = {**d, **{f"field.{k}": v for k, v in (field or {}).items()}}
+    if gone := [k for k, v in named.items() if k in today and v != today[k]]:
+        raise ValueError("trained with " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this version no "
+                         "longer has (it trains as " + ", ".join(f"{k}: {today[k]!r}" for k in gone) + ")")
+    out = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
+    if field is not None:
+        out["field"] = {**FIELD_ADDED_LATER, **{k: v for k, v in field.items() if k not in FIELD_REMOVED_OPTIONS}}
+    return out
