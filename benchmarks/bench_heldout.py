@@ -29,13 +29,12 @@ import statistics
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 from results_json import table, write_results
 
-from benchutil import print_command
+from benchutil import add_executor_args, print_command, print_tables, run_parallel
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("colmap", "oracle")
@@ -197,9 +196,7 @@ def main() -> int:
     ap.add_argument("--label", default="default", help="name of the config in the table and the run directories")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
-    ap.add_argument("--jobs", type=int, default=1, help="runs at once (local processes; cores shared out)")
-    ap.add_argument("--executor", choices=("local", "ray"), default="local", help="local processes or Ray tasks")
-    ap.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray instance)")
+    add_executor_args(ap)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "heldout.json", help="results JSON")
     args = ap.parse_args()
     print_command()
@@ -228,30 +225,18 @@ def main() -> int:
         import ray
 
         ray.init(address=args.address)
-        make = ray.remote(num_cpus=threads)(_dataset_or_error)
-        for seed, err in zip(seeds, ray.get([make.remote(s, args.root, threads) for s in seeds])):
-            if err:
-                failed[seed] = err
-        remote = ray.remote(num_cpus=threads)(run_one)
-        pending = [remote.remote(*job_args(s, src)) for s, src in jobs if s not in failed]
-        while pending:
-            done, pending = ray.wait(pending)
-            for ref in done:
-                report(ray.get(ref))
-    else:
-        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            for seed, err in zip(seeds, pool.map(lambda s: _dataset_or_error(s, args.root, threads), seeds)):
-                if err:
-                    failed[seed] = err
-            futures = [pool.submit(run_one, *job_args(s, src)) for s, src in jobs if s not in failed]
-            for f in as_completed(futures):
-                report(f.result())
+    made = [(s, (s, args.root, threads)) for s in seeds]
+    for seed, err in run_parallel(_dataset_or_error, made, args.jobs, args.executor, threads):
+        if err:
+            failed[seed] = err
+    calls = [((s, src), job_args(s, src)) for s, src in jobs if s not in failed]
+    for _, r in run_parallel(run_one, calls, args.jobs, args.executor, threads):
+        report(r)
     for seed, err in failed.items():
         for src in sources:
             report({"seed": seed, "source": src, "error": err, "seconds": 0.0})
     ts = tables(runs, args.label)
-    for name, t in ts.items():
-        print(f"\n{name}:\n| " + " | ".join(t["columns"]) + " |\n" + "\n".join("| " + " | ".join(r) + " |" for r in t["rows"]))
+    print_tables(ts)
     write_results(args.out, "heldout", "python " + " ".join(sys.argv), ts,
                   {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config, "runs": runs,
                    "wall_seconds": time.perf_counter() - t0, "jobs": args.jobs,

@@ -11,6 +11,42 @@ def print_command() -> None:
     print("command: " + shlex.join(["python", *sys.argv]), flush=True)
 
 
+def print_tables(tables: dict) -> None:
+    """Print each ``{name: {"columns", "rows"}}`` table as markdown under its name."""
+    for name, t in tables.items():
+        print(f"\n{name}:\n| " + " | ".join(t["columns"]) + " |\n" + "\n".join("| " + " | ".join(r) + " |" for r in t["rows"]))
+
+
+def add_executor_args(ap) -> None:
+    """``--jobs``, ``--executor`` and ``--address``: how :func:`run_parallel` spreads the runs."""
+    ap.add_argument("--jobs", type=int, default=1, help="runs at once (local processes; cores shared out)")
+    ap.add_argument("--executor", choices=("local", "ray"), default="local", help="local processes or Ray tasks")
+    ap.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray instance)")
+
+
+def run_parallel(fn, calls, jobs: int, executor: str, threads: int):
+    """Yield ``(tag, fn(*args))`` for each ``(tag, args)`` of ``calls`` as it finishes: in ``jobs``
+    local threads (each ``fn`` runs its own subprocess), or as Ray tasks of ``threads`` CPUs each
+    (``executor == "ray"``; ``ray.init`` called by the caller)."""
+    if executor == "ray":
+        import ray
+
+        remote = ray.remote(num_cpus=threads)(fn)
+        refs = {remote.remote(*a): tag for tag, a in calls}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending)
+            for ref in done:
+                yield refs[ref], ray.get(ref)
+    else:
+        from concurrent.futures import ThreadPoolExecutor, as_completed
+
+        with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+            futures = {pool.submit(fn, *a): tag for tag, a in calls}
+            for f in as_completed(futures):
+                yield futures[f], f.result()
+
+
 def compare_renders(run, truth, sbar, modes, install) -> None:
     """Print evaluation's two render workloads under two implementations, side by side.
 

@@ -33,7 +33,7 @@ VOTE = 0.5
 CELL_FRACTION = 0.03
 
 
-def occluding_share(
+def occlusion_tests(
     cam_to_obj: np.ndarray,
     sparse_pix: list[np.ndarray],
     sparse_depth: list[np.ndarray],
@@ -41,8 +41,9 @@ def occluding_share(
     width: int,
     height: int,
     margin: float,
-) -> list[np.ndarray]:
-    """Per frame, the share ``(M,)`` of the other frames in which each sparse depth would occlude.
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per frame, how often each sparse depth was tested against the other frames and how often
+    it would have hidden what they saw.
 
     Args:
         cam_to_obj: ``(F, 4, 4)`` camera-to-object poses of the object's frames (depths' unit).
@@ -51,10 +52,10 @@ def occluding_share(
         margin: relative depth by which a point must lie in front of the observed surface.
 
     Returns:
-        Per frame ``(M,)`` in [0, 1]: over the other frames where the point projects in front of
-        the camera into a block of pixels (side ``CELL_FRACTION`` of the frame) holding observed
-        depths, the share where its depth is below ``(1 - margin)`` times their median (0 when no
-        frame could test it).
+        Per frame ``(tested, hides)``, each ``(M,)`` counts of other frames: those where the point
+        projects in front of the camera into a block of pixels (side ``CELL_FRACTION`` of the
+        frame) holding observed depths, and among them those where its depth is below
+        ``(1 - margin)`` times their median.
     """
     cell = max(1, int(round(CELL_FRACTION * max(width, height))))
     gh, gw = -(-height // cell), -(-width // cell)
@@ -84,8 +85,41 @@ def occluding_share(
                 test = seen > 0
                 tested += test
                 hides += test & (z < (1.0 - margin) * seen)
-        out.append(np.divide(hides, tested, out=np.zeros_like(hides), where=tested > 0))
+        out.append((tested, hides))
     return out
+
+
+def occluding_share(
+    cam_to_obj: np.ndarray,
+    sparse_pix: list[np.ndarray],
+    sparse_depth: list[np.ndarray],
+    K: np.ndarray,
+    width: int,
+    height: int,
+    margin: float,
+) -> list[np.ndarray]:
+    """Per frame ``(M,)`` in [0, 1]: the share of the other frames that could test a sparse depth
+    (:func:`occlusion_tests`, the same arguments) in which it would occlude; 0 when none could."""
+    return [np.divide(h, t, out=np.zeros_like(h), where=t > 0)
+            for t, h in occlusion_tests(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)]
+
+
+def contradicted_share(
+    cam_to_obj: np.ndarray,
+    sparse_pix: list[np.ndarray],
+    sparse_depth: list[np.ndarray],
+    K: np.ndarray,
+    width: int,
+    height: int,
+    margin: float = MARGIN,
+) -> float:
+    """The share of all of an object's depth-against-frame tests (:func:`occlusion_tests`, the
+    same arguments) in which a depth lies ``margin`` in front of what the other frame saw there:
+    0 on exact depths but for blocks straddling a depth edge, more where SfM's poses or points are
+    off. 0 when nothing could be tested."""
+    counts = occlusion_tests(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)
+    tested = sum(float(t.sum()) for t, _ in counts)
+    return sum(float(h.sum()) for _, h in counts) / tested if tested > 0 else 0.0
 
 
 def _cell_medians(pix: np.ndarray, dep: np.ndarray, cell: int, gh: int, gw: int) -> np.ndarray:

@@ -26,7 +26,7 @@ _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_
 _FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
-    """``auto`` (resolved per input source by :func:`by_source`) or a value ``rule`` accepts."""
+    """``auto`` (resolved by a measured property of the inputs) or a value ``rule`` accepts."""
     return Rule(lambda v: v == "auto" or rule.ok(v), f"auto or {rule.what}")
 
 
@@ -82,32 +82,32 @@ _RULES: dict[str, Rule] = {
 }
 
 
-#: ``depth_robust: auto`` on inputs other than the oracle's (SfM, a user's video): the Cauchy
+#: ``depth_robust: auto`` on noisy inputs (:mod:`osn.preprocess.depth_noise`; SfM's): the Cauchy
 #: scale of the sparse-depth loss in multiples of the batch's median residual (docs/preprocess.md).
-DEPTH_ROBUST_SFM = 3.0
+DEPTH_ROBUST_NOISY = 3.0
 
 
-def by_source(value: float | str, source: str, oracle: float, other: float) -> float:
-    """An option that may be ``auto``: ``oracle`` on the oracle's inputs (exact poses and depths),
-    ``other`` on anything else (SfM, a user's video); a number stays itself. The resolvers below
-    say, per option, why the two differ."""
+def by_noise(value: float | str, noisy: bool, exact: float, other: float) -> float:
+    """An option that may be ``auto``: ``exact`` on inputs whose depths agree across frames,
+    ``other`` on noisy ones (:func:`osn.preprocess.depth_noise.depth_consistency`: a measured
+    property, never the inputs' source); a number stays itself. The resolvers below say, per
+    option, why the two differ."""
     if value == "auto":
-        return oracle if source == "oracle" else other
+        return other if noisy else exact
     return float(value)
 
 
-#: ``w_edge: auto`` on inputs other than the oracle's: the weight of the silhouette-depth term
+#: ``w_edge: auto`` on noisy inputs: the weight of the silhouette-depth term
 #: (:func:`osn.train.losses.edge_excess`; docs/training.md, "Losses").
-W_EDGE_SFM = 1.0
+W_EDGE_NOISY = 1.0
 
 
-def resolve_w_edge(value: float | str, source: str) -> float:
-    """The silhouette-depth term's weight for inputs from ``source``: ``auto`` is off on the
-    oracle's, whose exact silhouettes need no correction (there the term lowers the valid set's
-    IoU), and :data:`W_EDGE_SFM` on anything else, where the objects' fields read their silhouettes
-    too far and cut the contact bounds tight; the term restores their recall (measurements in
-    docs/experiments/)."""
-    return by_source(value, source, 0.0, W_EDGE_SFM)
+def resolve_w_edge(value: float | str, noisy: bool) -> float:
+    """The silhouette-depth term's weight: ``auto`` is off on exact inputs, whose silhouettes need
+    no correction (there the term lowers the valid set's IoU), and :data:`W_EDGE_NOISY` on noisy
+    ones, where the objects' fields read their silhouettes too far and cut the contact bounds
+    tight; the term restores their recall (measurements in docs/experiments/)."""
+    return by_noise(value, noisy, 0.0, W_EDGE_NOISY)
 
 
 #: ``anchor_guide_samples: auto``: the guide pass's density samples along each of the anchor's
@@ -135,14 +135,15 @@ def checkpoint_anchor_guide_samples(ckpt: dict[str, Any], source: str) -> int:
     the guide (0)."""
     if "anchor_guide" in ckpt:
         return int(ckpt["anchor_guide"])
-    return int(by_source(ckpt["config"].get("anchor_guide_samples", 0), source, 0, ANCHOR_GUIDE_SAMPLES))
+    value = ckpt["config"].get("anchor_guide_samples", 0)
+    return int(value) if value != "auto" else (0 if source == "oracle" else ANCHOR_GUIDE_SAMPLES)
 
 
-def resolve_depth_robust(value: float | str, source: str) -> float:
-    """The sparse-depth loss's robustness for inputs from ``source``: ``auto`` is the squared
-    error on the oracle's exact depths (a robust loss there lowers the valid set's IoU) and
-    :data:`DEPTH_ROBUST_SFM` on anything else, whose depths hold SfM's phantom points."""
-    return by_source(value, source, 0.0, DEPTH_ROBUST_SFM)
+def resolve_depth_robust(value: float | str, noisy: bool) -> float:
+    """The sparse-depth loss's robustness: ``auto`` is the squared error on exact depths (a robust
+    loss there lowers the valid set's IoU) and :data:`DEPTH_ROBUST_NOISY` on noisy ones, which
+    hold SfM's phantom points."""
+    return by_noise(value, noisy, 0.0, DEPTH_ROBUST_NOISY)
 
 
 @dataclass
@@ -220,8 +221,9 @@ class TrainConfig:
     depth_robust: float | str = "auto"
     """addition (experiments/2026-11-26-sfm-phantom-depths-robust-depth-loss.md): The sparse-depth
     loss's form: 0 the squared error, ``k > 0`` a Cauchy loss at ``k`` times the batch's median
-    residual, against SfM's phantom depths. ``auto`` (:func:`resolve_depth_robust`): 0 on the
-    oracle's inputs, :data:`DEPTH_ROBUST_SFM` on any other. Unit: multiples of the median
+    residual, against SfM's phantom depths. ``auto`` (:func:`resolve_depth_robust`): 0 on exact
+    inputs, :data:`DEPTH_ROBUST_NOISY` on noisy ones (:mod:`osn.preprocess.depth_noise`). Unit:
+    multiples of the median
     residual. Neutral: 0 (the paper's squared error)."""
     w_seg: float = 0.01
     """paper (Sec. 3.3, Eq. 10; appendix "Details of the Joint Optimization", Loss Weights): Weight
@@ -261,8 +263,8 @@ class TrainConfig:
     """addition (experiments/2026-11-26-silhouette-depth.md): Weight of the silhouette-depth term
     (``osn.train.losses.edge_excess``, objects but the anchor): an edge pixel's log depth may
     exceed its inner neighbour's by at most ``edge_slope``, the excess squared. ``auto``
-    (:func:`resolve_w_edge`): 0 on the oracle's inputs, :data:`W_EDGE_SFM` on any other. Unit:
-    loss weight. Neutral: 0 (term off)."""
+    (:func:`resolve_w_edge`): 0 on exact inputs, :data:`W_EDGE_NOISY` on noisy ones
+    (:mod:`osn.preprocess.depth_noise`). Unit: loss weight. Neutral: 0 (term off)."""
     edge_rays: int = 64
     """addition (experiments/2026-11-26-silhouette-depth.md): Silhouette pixels (each with its inner
     neighbour) drawn per object and step for ``w_edge``'s term. Unit: rays per object and step.
@@ -437,19 +439,19 @@ def footprint_resolution(bbox: np.ndarray, cam_to_obj: np.ndarray, K: np.ndarray
     return int(np.clip(round(float(np.median(extents))), min(MIN_OBJECT_RESOLUTION, cap), cap))
 
 
-def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs) -> list[list[int]]:
+def object_resolutions(fcfg: FieldConfig, inputs: SceneInputs, noisy: bool) -> list[list[int]]:
     """Per object position its fields' resolution schedule (:meth:`FieldConfig.resolutions`): the
     anchor's ends at ``field.resolution``, every other object's at ``field.object_resolution``
-    (0: ``resolution``; never above it). ``auto``: :func:`footprint_resolution` on SfM inputs (or
-    a user's video), where a small object's voxels at ``resolution`` are a fraction of a pixel
-    and coarser ones, a voxel per pixel, render its test pixels and best of N better;
-    ``resolution`` on the oracle's, whose exact contacts lose recall on coarser grids
-    (measurements in docs/experiments/)."""
+    (0: ``resolution``; never above it). ``auto``: :func:`footprint_resolution` on noisy inputs
+    (``noisy``, :mod:`osn.preprocess.depth_noise`; SfM's), where a small object's voxels at
+    ``resolution`` are a fraction of a pixel and coarser ones, a voxel per pixel, render its test
+    pixels and best of N better; ``resolution`` on exact inputs, whose contacts lose recall on
+    coarser grids (measurements in docs/experiments/)."""
     out = []
     for k, o in enumerate(inputs.objects):
         final = fcfg.resolution
         r = fcfg.object_resolution
-        if k != inputs.anchor_pos and r == "auto" and inputs.source != "oracle":
+        if k != inputs.anchor_pos and r == "auto" and noisy:
             final = footprint_resolution(o.bbox, o.cam_to_obj, inputs.K, fcfg.resolution)
         elif k != inputs.anchor_pos and r not in ("auto", 0):
             final = min(int(r), fcfg.resolution)

@@ -22,6 +22,7 @@ from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import OrderConstraints, in_front_pairs, order_constraints, trimmed_labels
 from osn.model.volume import RenderOutput, render
+from osn.preprocess.depth_noise import depth_consistency
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
                               resolve_anchor_guide_samples, resolve_depth_robust, resolve_w_edge)
@@ -46,8 +47,11 @@ class Trainer:
     def __init__(self, inputs: SceneInputs, cfg: TrainConfig, device: torch.device) -> None:
         self.cfg, self.device = cfg, device
         self.st = SceneTensors(inputs, device, resolve_anchor_guide_samples(cfg.anchor_guide_samples, cfg.field, inputs))
-        self.depth_robust = resolve_depth_robust(cfg.depth_robust, inputs.source)
-        self.w_edge = resolve_w_edge(cfg.w_edge, inputs.source)
+        # What `auto` options read of the inputs: whether their depths agree across frames.
+        self.depth_consistency = depth_consistency(inputs)
+        noisy = self.depth_consistency.noisy
+        self.depth_robust = resolve_depth_robust(cfg.depth_robust, noisy)
+        self.w_edge = resolve_w_edge(cfg.w_edge, noisy)
         self.source = inputs.source
         K = self.st.K
         if self.st.unposed_pixels:
@@ -55,7 +59,7 @@ class Trainer:
                         "no ray is drawn from them", self.st.unposed_pixels)
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-        self.resolutions = object_resolutions(cfg.field, inputs)  # per object position its grid's schedule
+        self.resolutions = object_resolutions(cfg.field, inputs, noisy)  # per object position its grid's schedule
         planes = anchor_plane_size(cfg.field, inputs)
         self.fields = [self._make_object_field(k, self.resolutions[k][0], planes if k == inputs.anchor_pos else 0)
                        for k in range(len(inputs.objects))]
@@ -108,6 +112,7 @@ class Trainer:
             "loss_acc": self.loss_acc,
             "resolutions": [f.resolution for f in self.fields],
             "anchor_guide": self.st.guide,  # resolved: what `auto` gives may change, what trained may not
+            "depth_consistency": self.depth_consistency.record(),  # what the other `auto`s read (a record)
             "in_front": sorted(self.in_front),
             "fields": [f.state_dict() for f in self.fields],
             "field_opt": self.field_opt.state_dict(),

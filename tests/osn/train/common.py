@@ -1,12 +1,17 @@
-"""A small, fast training config for the ``tiny`` dataset (32 px, 3 frames) and a metrics reader."""
+"""A small, fast training config for the ``tiny`` dataset (32 px, 3 frames), a metrics reader, and
+inputs with SfM-like phantom depths."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from osn.model.fields import FieldConfig
+from osn.preprocess.inputs import SceneInputs
 from osn.train import TrainConfig
 
 
@@ -30,3 +35,15 @@ def small_config(**kw: Any) -> TrainConfig:
 def metrics(run: Path) -> list[dict]:
     """Every line of ``run/metrics.jsonl`` (strict: a cut line fails the test)."""
     return [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def with_phantoms(inputs: SceneInputs, share: float = 0.05, k: int | None = None, seed: int = 0) -> SceneInputs:
+    """``inputs`` with a random ``share`` of object ``k``'s sparse depths (default: the anchor's)
+    at half their value, as SfM's phantom points are; the source label is left as it is."""
+    rng = np.random.default_rng(seed)
+    k = inputs.anchor_pos if k is None else k
+    objects = list(inputs.objects)
+    o = objects[k]
+    depths = [np.where(rng.random(len(d)) < share, 0.5 * np.asarray(d), d) for d in o.sparse_depth]
+    objects[k] = dataclasses.replace(o, sparse_depth=depths)
+    return dataclasses.replace(inputs, objects=objects)

@@ -13,7 +13,7 @@ from osn.model.fields import FieldConfig
 from osn.train import TrainConfig
 from osn.train.config import (
     MIN_OBJECT_RESOLUTION,
-    DEPTH_ROBUST_SFM,
+    DEPTH_ROBUST_NOISY,
     footprint_resolution,
     label_stride,
     resolve_depth_robust,
@@ -153,12 +153,12 @@ def test_auto_label_stride_keeps_the_pool_size_of_a_128_pixel_frame() -> None:
 
 
 def test_auto_depth_robustness_is_off_for_exact_depths_only() -> None:
-    """``depth_robust: auto``: the squared error on the oracle's exact depths, the robust loss on
-    SfM's and on anything else's; a number is taken as it is."""
+    """``depth_robust: auto``: the squared error on depths that agree across frames, the robust
+    loss on noisy ones (:mod:`osn.preprocess.depth_noise`); a number is taken as it is."""
     assert TrainConfig().depth_robust == "auto"
-    assert resolve_depth_robust("auto", "oracle") == 0.0
-    assert resolve_depth_robust("auto", "colmap") == resolve_depth_robust("auto", "unknown") == DEPTH_ROBUST_SFM > 0
-    assert resolve_depth_robust(0, "colmap") == 0.0 and resolve_depth_robust(2.5, "oracle") == 2.5
+    assert resolve_depth_robust("auto", noisy=False) == 0.0
+    assert resolve_depth_robust("auto", noisy=True) == DEPTH_ROBUST_NOISY > 0
+    assert resolve_depth_robust(0, noisy=True) == 0.0 and resolve_depth_robust(2.5, noisy=False) == 2.5
 
 
 def test_options_that_resolved_by_the_inputs_source_are_plain_numbers() -> None:

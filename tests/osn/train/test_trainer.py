@@ -18,6 +18,7 @@ from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
 from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
+from tests.osn.train.common import with_phantoms
 
 
 def test_schedule_has_rounds_and_skips_scale_phases_for_one_object() -> None:
@@ -464,12 +465,14 @@ def test_robust_depth_loss_keeps_phantom_sparse_depths_from_pulling_the_surface(
     assert robust_kept <= plain_kept, (robust_kept, plain_kept)
 
 
-def test_trainer_resolves_auto_depth_robustness_from_the_inputs_source(tiny_dataset: Path) -> None:
+def test_trainer_resolves_auto_depth_robustness_from_the_measured_noise(tiny_dataset: Path) -> None:
+    """Exact depths keep the squared error whatever their label; phantoms make the loss robust."""
     inputs = oracle_inputs(tiny_dataset)
     assert Trainer(inputs, _cfg(), torch.device("cpu")).depth_robust == 0.0  # exact depths: squared error
     inputs.source = "colmap"
-    assert Trainer(inputs, _cfg(), torch.device("cpu")).depth_robust == 3.0
-    assert Trainer(inputs, _cfg(depth_robust=0.0), torch.device("cpu")).depth_robust == 0.0
+    assert Trainer(inputs, _cfg(), torch.device("cpu")).depth_robust == 0.0  # the label is not read
+    assert Trainer(with_phantoms(inputs), _cfg(), torch.device("cpu")).depth_robust == 3.0
+    assert Trainer(with_phantoms(inputs), _cfg(depth_robust=0.0), torch.device("cpu")).depth_robust == 0.0
 
 
 def test_edge_pairs_are_silhouette_pixels_and_their_inner_neighbours(tiny_dataset: Path) -> None:
@@ -516,17 +519,31 @@ def test_edge_excess_is_one_sided_beyond_the_slope_and_skips_empty_rays() -> Non
     assert float(none) == 0.0 and torch.isfinite(none)
 
 
-def test_edge_term_is_reported_when_on_and_auto_is_off_on_the_oracle(tiny_dataset: Path) -> None:
-    """``w_edge > 0``: stage-1 steps report a finite edge loss. ``auto`` (the default) leaves it
-    off on oracle inputs and on for any other source (SfM, a user's video)."""
-    from osn.train.config import W_EDGE_SFM, resolve_w_edge
+def test_edge_term_is_reported_when_on_and_auto_follows_the_measured_noise(tiny_dataset: Path) -> None:
+    """``w_edge > 0``: stage-1 steps report a finite edge loss. ``auto`` (the default) and the
+    other options that correct for noisy inputs read whether the depths agree across frames
+    (:mod:`osn.preprocess.depth_noise`), never the source label: exact inputs labelled SfM train
+    as the oracle's do, the oracle's with phantom depths as SfM's do."""
+    from osn.train.config import DEPTH_ROBUST_NOISY, W_EDGE_NOISY, resolve_w_edge
 
     tr = Trainer(oracle_inputs(tiny_dataset), _cfg(w_edge=1.0), torch.device("cpu"))
     out = tr.step_stage1()
     assert "edge" in out and np.isfinite(out["edge"])
-    auto = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
-    assert auto.w_edge == 0.0 and auto.edges is None and "edge" not in auto.step_stage1()
-    assert resolve_w_edge("auto", "colmap") == W_EDGE_SFM > 0 and resolve_w_edge(0.5, "oracle") == 0.5
+    fcfg = dataclasses.replace(_cfg().field, object_resolution="auto")
+    exact = oracle_inputs(tiny_dataset)
+    for inputs in (exact, dataclasses.replace(exact, source="colmap")):
+        auto = Trainer(inputs, _cfg(field=fcfg), torch.device("cpu"))
+        assert auto.w_edge == 0.0 and auto.edges is None and "edge" not in auto.step_stage1()
+        assert auto.depth_robust == 0.0 and not auto.depth_consistency.noisy
+        assert auto.resolutions == [[16, 24]] * inputs.num_objects
+    noisy = Trainer(with_phantoms(exact, 0.05), _cfg(field=fcfg), torch.device("cpu"))
+    assert noisy.st.inputs.source == "oracle" and noisy.depth_consistency.noisy
+    assert noisy.w_edge == W_EDGE_NOISY > 0 and noisy.depth_robust == DEPTH_ROBUST_NOISY > 0
+    assert "edge" in noisy.step_stage1()
+    a = exact.anchor_pos
+    assert all(r[-1] < 24 for k, r in enumerate(noisy.resolutions) if k != a) and noisy.resolutions[a] == [16, 24]
+    assert noisy.state_dict()["depth_consistency"]["noisy"] is True
+    assert resolve_w_edge("auto", noisy=True) == W_EDGE_NOISY and resolve_w_edge(0.5, noisy=False) == 0.5
     with pytest.raises(ValueError, match="w_edge"):
         _cfg(w_edge="sometimes")
 
@@ -547,19 +564,21 @@ def test_final_phase_trims_the_same_whatever_the_inputs_source(tiny_dataset: Pat
 
 def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tiny_dataset: Path, tmp_path: Path) -> None:
     """``field.object_resolution: auto`` gives every object but the anchor a grid of about a voxel
-    per training pixel on SfM inputs (here the tiny scene's oracle inputs relabelled), grown on the
-    anchor's schedule; the trained run loads each at its own size. On the oracle's inputs, and
-    with 0, every object stays at ``resolution``."""
+    per training pixel on noisy inputs (here the tiny scene's oracle inputs with phantom depths on
+    an object), grown on the anchor's schedule; the trained run loads each at its own size. On exact
+    inputs, and with 0, every object stays at ``resolution``."""
     from osn.model.fields import FieldConfig
     from osn.model.run import load_run
+    from osn.preprocess.depth_noise import depth_consistency
     from osn.train.config import MIN_ANCHOR_PLANES, anchor_pixels, anchor_plane_size, object_resolutions
     from osn.train.loop import train
 
     oracle = oracle_inputs(tiny_dataset)
-    inputs = dataclasses.replace(oracle, source="colmap")
+    inputs = with_phantoms(oracle, 0.1, k=oracle.num_objects - 1)  # an object's: the anchor's planes stay as they are
+    assert depth_consistency(inputs).noisy and oracle.anchor_pos != oracle.num_objects - 1
     fcfg = FieldConfig(kind="dense", resolution=24, initial_resolution=16, upsample_steps=1, object_resolution="auto")
-    sched = object_resolutions(fcfg, inputs)
-    assert object_resolutions(fcfg, oracle) == [[16, 24]] * oracle.num_objects
+    sched = object_resolutions(fcfg, inputs, noisy=True)
+    assert object_resolutions(fcfg, oracle, noisy=False) == [[16, 24]] * oracle.num_objects
     a = inputs.anchor_pos
     assert sched[a] == [16, 24]
     assert all(s[-1] < 24 and s[0] < s[-1] for k, s in enumerate(sched) if k != a), sched  # objects ~10 px wide at 32 px
@@ -614,6 +633,6 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     resumed.step_fields()  # trains on as it trained
     assert resumed.non_finite_parameters() == []
     same = dataclasses.replace(fcfg, object_resolution=0)
-    assert object_resolutions(same, inputs) == [[16, 24]] * inputs.num_objects
-    assert object_resolutions(dataclasses.replace(fcfg, object_resolution=20), inputs) == \
+    assert object_resolutions(same, inputs, noisy=True) == [[16, 24]] * inputs.num_objects
+    assert object_resolutions(dataclasses.replace(fcfg, object_resolution=20), inputs, noisy=True) == \
         [[16, 24] if k == a else [13, 20] for k in range(inputs.num_objects)]

@@ -1,0 +1,217 @@
+"""Which of this toolkit's additions to OSN earn their place: the default minus each family of them.
+
+On scenes of the procedural family's development split (tune here; the held-out split is reported
+once, by ``bench_heldout.py``), ``osn demo`` trains the CPU default, the default with one family
+of additions set to its neutral value (:data:`FAMILIES`; each option's category and neutral value
+are in docs/training.md, Options), and optionally the paper's configuration, from SfM inputs (the
+published path). The inputs are not recomputed per configuration: every run of a scene starts
+from the SfM, oracle and ground-truth stages of one ``bench_heldout.py`` run of that scene
+(``--base LABEL``, run first with ``bench_heldout.py --root ROOT --split development``), so a
+difference between two rows is the training configuration's alone. Per run the figures of
+``bench_heldout.py`` (valid-set IoU, best of N minus the highest-score solution, training time);
+per configuration mean ± std over scenes and training seeds, and the paired difference of IoU
+from the default's run of the same scene and seed. Everything resumes. Run:
+
+    .venv/bin/python benchmarks/bench_ablation.py --root /tmp/dev3 --base cand --seeds 3
+        [--families label-rule,free-space] [--train-seeds 0,1] [--jobs 2] [--executor ray]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+from bench_heldout import FIELDS, _mean_std, _measured, run_one
+from results_json import table, write_results
+
+from benchutil import add_executor_args, print_command, print_tables, run_parallel
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = ROOT / "configs" / "osn-cpu.yaml"
+PAPER_CONFIG = ROOT / "configs" / "osn-paper.yaml"
+
+#: Families of additions: what each is for, and the neutral values that switch it off
+#: (``field.X`` is a field option). The last two single out the options that resolve ``auto``
+#: differently on SfM's inputs and the oracle's, so that each can be judged alone.
+FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
+    "label-rule": ("a sample stays valid while it violates a few contact rays (trim), a silhouette bleed "
+                   "(minority pair) is dropped, earlier positives are replayed; the paper: no violated ray",
+                   {"label_trim": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
+    "free-space": ("density carved from the pixels another object owns in front of it",
+                   {"free_space": "none", "w_free": 0.0, "free_band": 0, "free_band_objects": 0}),
+    "depth-terms": ("robust sparse-depth loss, silhouette-depth term, distortion loss",
+                    {"depth_robust": 0.0, "w_edge": 0.0, "w_distortion": 0.0}),
+    "anchor-terms": ("what only the room gets: hidden-surface smoothness, guided samples, colour planes",
+                     {"w_hidden_smooth": 0.0, "anchor_guide_samples": 0, "field.anchor_planes": 0}),
+    "final-scale-phase": ("a last scale phase fits the network to the final fields' labels",
+                          {"final_scale_iters": 0}),
+    "field-resolution": ("objects' grids sized by their pixel footprint, not the room's resolution",
+                         {"field.object_resolution": 0}),
+    "object-terms": ("opacity loss, and each object's stage-1 terms kept in every field step",
+                     {"w_opacity": 0.0, "w_alone": 0.0}),
+    "scale-optimiser": ("the scale network's phases, rate and cosine decay as retuned here",
+                        {"scale_iters": 100, "scale_lr": 0.001, "scale_lr_final": 1.0}),
+    "robust-depth": ("the Cauchy sparse-depth loss alone (auto: on SfM's inputs only)", {"depth_robust": 0.0}),
+    "silhouette-depth": ("the silhouette-depth term alone (auto: on SfM's inputs only)", {"w_edge": 0.0}),
+}
+
+#: Demo stages whose outputs depend on the scene and the inputs only: copied from the base run.
+UPSTREAM_STAGES = ("generate", "sfm-video", "preprocess", "ground-truth")
+UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
+
+
+def config_for(name: str, train_seed: int) -> dict[str, Any]:
+    """The training config of row ``name`` (``default``, ``paper`` or a family) at ``train_seed``."""
+    base = yaml.safe_load((PAPER_CONFIG if name == "paper" else DEFAULT_CONFIG).read_text())
+    off = FAMILIES[name][1] if name in FAMILIES else {}
+    for key, value in off.items():
+        if key.startswith("field."):
+            base["field"][key.removeprefix("field.")] = value
+        else:
+            base[key] = value
+    base["seed"] = train_seed
+    return base
+
+
+def seed_work(root: Path, seed: int, base: str, label: str, source: str) -> None:
+    """Start ``random-SEED/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
+    and outputs (hard links where the file system allows), so ``osn demo`` resumes at training."""
+    src = root / f"random-{seed}" / f"{base}-{source}"
+    if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
+        raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
+    dst = root / f"random-{seed}" / f"{label}-{source}"
+    if (dst / ".done").is_dir():
+        return
+    tmp = dst.with_name(dst.name + ".part")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / ".done").mkdir(parents=True)
+    for stage in UPSTREAM_STAGES:
+        for suffix in (".json", ".started.json"):
+            if (f := src / ".done" / f"{stage}{suffix}").is_file():
+                shutil.copy2(f, tmp / ".done" / f.name)
+    for d in UPSTREAM_DIRS:
+        if (src / d).is_dir():
+            shutil.copytree(src / d, tmp / d, copy_function=_link_or_copy)
+    (tmp / "dataset").symlink_to((root / f"random-{seed}" / "dataset").resolve(), target_is_directory=True)
+    tmp.rename(dst)
+
+
+def _link_or_copy(a: str, b: str) -> None:
+    try:
+        os.link(a, b)
+    except OSError:
+        shutil.copy2(a, b)
+
+
+def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, dict]:
+    """Per configuration mean ± std of each figure, and IoU paired with the default's same run."""
+    ok = [r for r in runs if "error" not in r]
+    ref = {(r["seed"], r["train_seed"]): r for r in ok if r["config"] == "default"}
+
+    def paired(r: dict[str, Any], key: str) -> float | None:
+        d = ref.get((r["seed"], r["train_seed"]), {})
+        return r[key] - d[key] if _measured(r.get(key)) and _measured(d.get(key)) else None
+
+    rows, departures = [], []
+    for name in names:
+        rs = [r for r in ok if r["config"] == name]
+        if not rs:
+            continue
+        cells = [_mean_std([r[k] for r in rs if _measured(r.get(k))], fmt) for k, fmt in FIELDS]
+        deltas = [x for r in rs if (x := paired(r, "iou")) is not None]
+        db = [x for r in rs if (x := paired(r, "best_minus_highest_db")) is not None]
+        seconds = [x for r in rs if (x := paired(r, "train_seconds")) is not None]
+        off = (", ".join(f"{k}={v}" for k, v in FAMILIES[name][1].items()) if name in FAMILIES
+               else "configs/osn-paper.yaml" if name == "paper" else "")
+        rows.append([name, off, str(len(rs)), *cells, _mean_std(deltas, "{:+.3f}") if name != "default" else ""])
+        if name != "default":
+            why = FAMILIES[name][0] if name in FAMILIES else "OSN as published: every addition at its neutral value"
+            departures.append([name, why, str(len(deltas)), _mean_std(deltas, "{:+.3f}"), _mean_std(db, "{:+.2f}"),
+                                _mean_std(seconds, "{:+.0f}")])
+    per_run = [[r["config"], str(r["seed"]), str(r["train_seed"]),
+                *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
+                r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], r["seed"], r["train_seed"]))]
+    heads = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scale error of matches", "training PSNR",
+             "training time (s)"]
+    return {"departures": table(["without", "what it is", "runs", "IoU - default's", "best of N - highest score, "
+                                 "- default's (dB)", "training time - default's (s)"], departures),
+            "ablation": table(["config", "switched off", "runs", *heads, "IoU - default's (paired)"], rows),
+            "ablation_per_run": table(["config", "scene seed", "training seed", *heads, "note"], per_run)}
+
+
+def main() -> int:
+    from benchgen.scene.procedural import SPLITS, parse_seeds
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, required=True, help="a bench_heldout.py root of the development split")
+    ap.add_argument("--base", default="default", help="the bench_heldout.py label whose inputs every run starts from")
+    ap.add_argument("--seeds", type=int, default=3, help="the first K development seeds (default: 3)")
+    ap.add_argument("--seed-list", default=None, help="explicit development seeds instead (A:B or a list)")
+    ap.add_argument("--families", default=",".join(FAMILIES), help=f"families to switch off (default: all: {', '.join(FAMILIES)})")
+    ap.add_argument("--paper", action="store_true", help="also train configs/osn-paper.yaml")
+    ap.add_argument("--train-seeds", default="0", help="training seeds, comma-separated (default: 0)")
+    ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published path)")
+    ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
+    ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
+    add_executor_args(ap)
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "ablation.json", help="results JSON")
+    args = ap.parse_args()
+    print_command()
+    split = SPLITS["development"]
+    seeds = parse_seeds(args.seed_list) if args.seed_list else list(split)[: args.seeds]
+    if outside := [s for s in seeds if s not in split]:
+        ap.error(f"seeds {outside} are not in the development split (never tune on held-out seeds)")
+    families = [f for f in args.families.split(",") if f]
+    if bad := [f for f in families if f not in FAMILIES]:
+        ap.error(f"unknown family {bad[0]!r} (expected one of {', '.join(FAMILIES)})")
+    train_seeds = [int(s) for s in args.train_seeds.split(",") if s]
+    names = ["default", *families, *(["paper"] if args.paper else [])]
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    threads = max(1, cores // max(1, args.jobs))
+    configs = args.root / "ablation-configs"
+    configs.mkdir(parents=True, exist_ok=True)
+    jobs = []
+    # Configuration-major: whole rows finish first, so a stopped run still leaves complete rows.
+    for name in names:
+        for t in train_seeds:
+            path = configs / f"{name}-s{t}.yaml"
+            path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
+            for seed in seeds:
+                label = f"abl-{name}-s{t}"
+                seed_work(args.root, seed, args.base, label, args.source)
+                jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads)))
+    runs: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+
+    def report(name: str, t: int, r: dict[str, Any]) -> None:
+        r = {**r, "config": name, "train_seed": t}
+        runs.append(r)
+        text = r.get("error") or " ".join(f"{k} {fmt.format(r[k])}" for k, fmt in FIELDS if r.get(k) is not None)
+        print(f"{name} scene {r['seed']} training seed {t}: {text} ({r['seconds']:.0f} s)", flush=True)
+
+    if args.executor == "ray":
+        import ray
+
+        ray.init(address=args.address)
+    for (name, t), r in run_parallel(run_one, [((name, t), a) for name, t, _, a in jobs], args.jobs, args.executor, threads):
+        report(name, t, r)
+    ts = ablation_tables(runs, names)
+    print_tables(ts)
+    write_results(args.out, "ablation", "python " + " ".join(sys.argv), ts,
+                  {"split": "development", "seeds": seeds, "train_seeds": train_seeds, "source": args.source,
+                   "base": args.base, "families": {f: {"why": FAMILIES[f][0], "off": FAMILIES[f][1]} for f in families}, "runs": runs,
+                   "wall_seconds": time.perf_counter() - t0, "jobs": args.jobs,
+                   "load_average_at_end": os.getloadavg()[0]}, ROOT)
+    print(f"wrote {args.out}")
+    return 1 if any("error" in r for r in runs) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
