@@ -38,28 +38,22 @@ DEFAULT_CONFIG = ROOT / "configs" / "osn-cpu.yaml"
 PAPER_CONFIG = ROOT / "configs" / "osn-paper.yaml"
 
 #: Families of additions: what each is for, and the neutral values that switch it off
-#: (``field.X`` is a field option). The last two single out the options that resolve ``auto``
-#: differently on SfM's inputs and the oracle's, so that each can be judged alone.
+#: (``field.X`` is a field option). The last singles out an option whose ``auto`` differs between
+#: exact and noisy inputs, so that it can be judged alone.
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
-    "label-rule": ("a sample stays valid while it violates a few contact rays (trim), a silhouette bleed "
-                   "(minority pair) is dropped, earlier positives are replayed; the paper: no violated ray",
+    "label-rule": ("a sample may violate a few contact rays; silhouette bleeds dropped; positives replayed",
                    {"label_trim": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
-    "free-space": ("density carved from the pixels another object owns in front of it",
+    "free-space": ("density carved where another object owns the pixel",
                    {"free_space": "none", "w_free": 0.0, "free_band": 0, "free_band_objects": 0}),
-    "depth-terms": ("robust sparse-depth loss, silhouette-depth term, distortion loss",
-                    {"depth_robust": 0.0, "w_edge": 0.0, "w_distortion": 0.0}),
-    "anchor-terms": ("what only the room gets: hidden-surface smoothness, guided samples, colour planes",
+    "depth-terms": ("robust depth loss, distortion loss", {"depth_robust": 0.0, "w_distortion": 0.0}),
+    "anchor-terms": ("the room's hidden-surface smoothness, guided samples, colour planes",
                      {"w_hidden_smooth": 0.0, "anchor_guide_samples": 0, "field.anchor_planes": 0}),
-    "final-scale-phase": ("a last scale phase fits the network to the final fields' labels",
-                          {"final_scale_iters": 0}),
-    "field-resolution": ("objects' grids sized by their pixel footprint, not the room's resolution",
-                         {"field.object_resolution": 0}),
-    "object-terms": ("opacity loss, and each object's stage-1 terms kept in every field step",
-                     {"w_opacity": 0.0, "w_alone": 0.0}),
-    "scale-optimiser": ("the scale network's phases, rate and cosine decay as retuned here",
+    "final-scale-phase": ("a last scale phase on the final fields", {"final_scale_iters": 0}),
+    "field-resolution": ("objects' grids a voxel per pixel", {"field.object_resolution": 0}),
+    "object-terms": ("opacity loss; stage-1 terms in every field step", {"w_opacity": 0.0, "w_alone": 0.0}),
+    "scale-optimiser": ("the scale network's phases, rate and decay as retuned here",
                         {"scale_iters": 100, "scale_lr": 0.001, "scale_lr_final": 1.0}),
-    "robust-depth": ("the Cauchy sparse-depth loss alone (auto: on SfM's inputs only)", {"depth_robust": 0.0}),
-    "silhouette-depth": ("the silhouette-depth term alone (auto: on SfM's inputs only)", {"w_edge": 0.0}),
+    "robust-depth": ("the Cauchy depth loss alone", {"depth_robust": 0.0}),
 }
 
 #: Demo stages whose outputs depend on the scene and the inputs only: copied from the base run.
@@ -124,24 +118,29 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
         rs = [r for r in ok if r["config"] == name]
         if not rs:
             continue
-        cells = [_mean_std([r[k] for r in rs if _measured(r.get(k))], fmt) for k, fmt in FIELDS]
+        # A figure a run could not give (no best of N without a learned set) is left out of its mean.
+        xs = {k: [r[k] for r in rs if _measured(r.get(k))] for k, _ in FIELDS}
+        cells = [_mean_std(xs[k], fmt) + (f" ({len(xs[k])} of {len(rs)})" if len(xs[k]) < len(rs) else "") for k, fmt in FIELDS]
         deltas = [x for r in rs if (x := paired(r, "iou")) is not None]
-        db = [x for r in rs if (x := paired(r, "best_minus_highest_db")) is not None]
-        seconds = [x for r in rs if (x := paired(r, "train_seconds")) is not None]
         off = (", ".join(f"{k}={v}" for k, v in FAMILIES[name][1].items()) if name in FAMILIES
                else "configs/osn-paper.yaml" if name == "paper" else "")
         rows.append([name, off, str(len(rs)), *cells, _mean_std(deltas, "{:+.3f}") if name != "default" else ""])
-        if name != "default":
-            why = FAMILIES[name][0] if name in FAMILIES else "OSN as published: every addition at its neutral value"
-            departures.append([name, why, str(len(deltas)), _mean_std(deltas, "{:+.3f}"), _mean_std(db, "{:+.2f}"),
-                                _mean_std(seconds, "{:+.0f}")])
+        why = (FAMILIES[name][0] if name in FAMILIES else "OSN as published: every addition off" if name == "paper"
+               else "every addition on")
+        per_scene = " / ".join(f"{r['iou']:.3f}" if _measured(r.get("iou")) else "-" for r in sorted(rs, key=lambda r: (r["train_seed"], r["seed"])))
+        departures.append([name if name in ("default", "paper") else f"without {name}", why, per_scene,
+                           _mean_std(deltas, "{:+.3f}") if name != "default" else "",
+                           cells[3], cells[6]])
     per_run = [[r["config"], str(r["seed"]), str(r["train_seed"]),
                 *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
                 r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], r["seed"], r["train_seed"]))]
     heads = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scale error of matches", "training PSNR",
              "training time (s)"]
-    return {"departures": table(["without", "what it is", "runs", "IoU - default's", "best of N - highest score, "
-                                 "- default's (dB)", "training time - default's (s)"], departures),
+    heads_d = ["configuration", "what the family does", "IoU per scene", "IoU - default's", "best of N - highest score (dB)",
+               "training time (s)"]
+    return {"departures": table(heads_d, departures),
+            # The same without the description and the time, for the README.
+            "departures_short": table([heads_d[i] for i in (0, 2, 3, 4)], [[r[i] for i in (0, 2, 3, 4)] for r in departures]),
             "ablation": table(["config", "switched off", "runs", *heads, "IoU - default's (paired)"], rows),
             "ablation_per_run": table(["config", "scene seed", "training seed", *heads, "note"], per_run)}
 
