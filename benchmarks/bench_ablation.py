@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import statistics
 import sys
 import time
@@ -28,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from bench_heldout import FIELDS, _mean_std, _measured, run_one
+from bench_heldout import FIELDS, _mean_std, _measured, run_one, seed_work
 from results_json import table, write_results
 
 from benchutil import add_executor_args, print_command, print_tables, run_parallel
@@ -56,11 +55,6 @@ FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "robust-depth": ("the Cauchy depth loss alone", {"depth_robust": 0.0}),
 }
 
-#: Demo stages whose outputs depend on the scene and the inputs only: copied from the base run.
-UPSTREAM_STAGES = ("generate", "sfm-video", "preprocess", "ground-truth")
-UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
-
-
 def config_for(name: str, train_seed: int) -> dict[str, Any]:
     """The training config of row ``name`` (``default``, ``paper`` or a family) at ``train_seed``."""
     base = yaml.safe_load((PAPER_CONFIG if name == "paper" else DEFAULT_CONFIG).read_text())
@@ -72,36 +66,6 @@ def config_for(name: str, train_seed: int) -> dict[str, Any]:
             base[key] = value
     base["seed"] = train_seed
     return base
-
-
-def seed_work(root: Path, seed: int, base: str, label: str, source: str) -> None:
-    """Start ``random-SEED/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
-    and outputs (hard links where the file system allows), so ``osn demo`` resumes at training."""
-    src = root / f"random-{seed}" / f"{base}-{source}"
-    if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
-        raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
-    dst = root / f"random-{seed}" / f"{label}-{source}"
-    if (dst / ".done").is_dir():
-        return
-    tmp = dst.with_name(dst.name + ".part")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / ".done").mkdir(parents=True)
-    for stage in UPSTREAM_STAGES:
-        for suffix in (".json", ".started.json"):
-            if (f := src / ".done" / f"{stage}{suffix}").is_file():
-                shutil.copy2(f, tmp / ".done" / f.name)
-    for d in UPSTREAM_DIRS:
-        if (src / d).is_dir():
-            shutil.copytree(src / d, tmp / d, copy_function=_link_or_copy)
-    (tmp / "dataset").symlink_to((root / f"random-{seed}" / "dataset").resolve(), target_is_directory=True)
-    tmp.rename(dst)
-
-
-def _link_or_copy(a: str, b: str) -> None:
-    try:
-        os.link(a, b)
-    except OSError:
-        shutil.copy2(a, b)
 
 
 def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, dict]:

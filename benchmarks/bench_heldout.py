@@ -25,6 +25,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -40,6 +41,41 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("colmap", "oracle")
 #: Attempts of a run refused because its dataset is in use (see ``run_one``).
 RETRIES_IN_USE = 10
+
+
+#: Demo stages whose outputs depend on the scene and the inputs only: copied from the base run.
+UPSTREAM_STAGES = ("generate", "sfm-video", "preprocess", "ground-truth")
+UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
+
+
+def seed_work(root: Path, seed: int, base: str, label: str, source: str) -> None:
+    """Start ``random-SEED/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
+    and outputs (hard links where the file system allows), so ``osn demo`` resumes at training."""
+    src = root / f"random-{seed}" / f"{base}-{source}"
+    if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
+        raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
+    dst = root / f"random-{seed}" / f"{label}-{source}"
+    if (dst / ".done").is_dir():
+        return
+    tmp = dst.with_name(dst.name + ".part")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / ".done").mkdir(parents=True)
+    for stage in UPSTREAM_STAGES:
+        for suffix in (".json", ".started.json"):
+            if (f := src / ".done" / f"{stage}{suffix}").is_file():
+                shutil.copy2(f, tmp / ".done" / f.name)
+    for d in UPSTREAM_DIRS:
+        if (src / d).is_dir():
+            shutil.copytree(src / d, tmp / d, copy_function=_link_or_copy)
+    (tmp / "dataset").symlink_to((root / f"random-{seed}" / "dataset").resolve(), target_is_directory=True)
+    tmp.rename(dst)
+
+
+def _link_or_copy(a: str, b: str) -> None:
+    try:
+        os.link(a, b)
+    except OSError:
+        shutil.copy2(a, b)
 
 
 def dataset_for(seed: int, root: Path, threads: int) -> Path:
@@ -194,6 +230,9 @@ def main() -> int:
     ap.add_argument("--sources", default="colmap,oracle", help="inputs to train from (default: colmap,oracle)")
     ap.add_argument("--config", default=None, help="YAML training config passed to osn demo (default: the CPU defaults)")
     ap.add_argument("--label", default="default", help="name of the config in the table and the run directories")
+    ap.add_argument("--inputs-of", default=None, metavar="LABEL",
+                    help="start every run from the SfM, oracle and ground-truth stages of LABEL's finished runs "
+                         "(train and evaluate only: a new training config on the same inputs)")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
     add_executor_args(ap)
@@ -211,6 +250,9 @@ def main() -> int:
     threads = max(1, cores // max(1, args.jobs))
     # Source-major, so that a seed's two runs rarely start together (they share its dataset).
     jobs = [(seed, src) for src in sources for seed in seeds]
+    if args.inputs_of:
+        for seed, src in jobs:
+            seed_work(args.root, seed, args.inputs_of, args.label, src)
     runs: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     job_args = lambda seed, src: (seed, src, args.root, args.config, args.label, args.n, args.max_views, threads)  # noqa: E731
