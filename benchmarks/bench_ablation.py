@@ -36,14 +36,15 @@ DEFAULT_CONFIG = ROOT / "configs" / "osn-cpu.yaml"
 PAPER_CONFIG = ROOT / "configs" / "osn-paper.yaml"
 
 #: Families of additions: what each is for, and the neutral values that switch it off
-#: (``field.X`` is a field option). The last singles out an option whose ``auto`` differs between
-#: exact and noisy inputs, so that it can be judged alone.
+#: (``field.X`` is a field option). The last two single out the options whose ``auto`` differs
+#: between exact and noisy inputs, so that each can be judged alone.
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "label-rule": ("a sample may violate a few contact rays; silhouette bleeds dropped; positives replayed",
                    {"label_trim": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
     "free-space": ("density carved where another object owns the pixel",
                    {"free_space": "none", "w_free": 0.0, "free_band": 0, "free_band_objects": 0}),
-    "depth-terms": ("robust depth loss, distortion loss", {"depth_robust": 0.0, "w_distortion": 0.0}),
+    "depth-terms": ("robust depth loss, silhouette depth, distortion loss",
+                    {"depth_robust": 0.0, "w_edge": 0.0, "w_distortion": 0.0}),
     "anchor-terms": ("the room's hidden-surface smoothness, guided samples, colour planes",
                      {"w_hidden_smooth": 0.0, "anchor_guide_samples": 0, "field.anchor_planes": 0}),
     "final-scale-phase": ("a last scale phase on the final fields", {"final_scale_iters": 0}),
@@ -52,6 +53,7 @@ FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "scale-optimiser": ("the scale network's phases, rate and decay as retuned here",
                         {"scale_iters": 100, "scale_lr": 0.001, "scale_lr_final": 1.0}),
     "robust-depth": ("the Cauchy depth loss alone", {"depth_robust": 0.0}),
+    "silhouette-depth": ("the silhouette-depth term alone", {"w_edge": 0.0}),
 }
 
 def config_for(name: str, train_seed: int) -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """Whether a scene's sparse depths are exact or noisy, measured on the inputs alone.
 
-Two training options correct for inputs whose poses and depths are a few per cent off (SfM's):
-the robust sparse-depth loss (``depth_robust``) and objects' grids a voxel per pixel
-(``field.object_resolution``). On exact inputs each of them lowers the valid set's IoU. Their ``auto`` picks by a property any inputs can be measured for,
+Three training options correct for inputs whose poses and depths are a few per cent off (SfM's):
+the robust sparse-depth loss (``depth_robust``), the silhouette-depth term (``w_edge``) and
+objects' grids a voxel per pixel (``field.object_resolution``). On exact inputs each of them
+lowers the valid set's IoU. Their ``auto`` picks by a property any inputs can be measured for,
 never by where the inputs came from: per object, the share of its depth-against-frame tests in
 which a sparse depth lies in front of what another frame observed there
 (:func:`osn.preprocess.freespace.contradicted_share`). Exact depths contradict one another only

@@ -18,7 +18,7 @@ from osn.train.run_config import upgrade_run_config
 from osn.preprocess.inputs import SceneInputs
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "hidden_strips", "scale_width", "scale_layers", "scale_samples",
+_POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "hidden_strips", "scale_width", "scale_layers", "scale_samples",
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
@@ -35,7 +35,7 @@ def _auto_or(rule: Rule) -> Rule:
 MAX_SAMPLES_PER_RAY = 4096
 MAX_RAYS = 1 << 20
 MAX_POINTS = 1 << 24
-_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays", "free_rays", "label_rays", "hidden_strips")
+_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays", "free_rays", "edge_rays", "label_rays", "hidden_strips")
 _SIZED_BY_POINTS = ("scale_samples", "candidates", "eval_pixels", "iou_samples")
 
 
@@ -64,6 +64,8 @@ _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
     "w_hidden_smooth": number(0.0),
+    "w_edge": _auto_or(number(0.0)),
+    "edge_slope": number(0.0),
     "depth_robust": _auto_or(number(0.0)),
     "final_label_trim": number(0.0, 1.0),
     "anchor_guide_samples": _auto_or(integer(0)),
@@ -93,6 +95,19 @@ def by_noise(value: float | str, noisy: bool, exact: float, other: float) -> flo
     if value == "auto":
         return other if noisy else exact
     return float(value)
+
+
+#: ``w_edge: auto`` on noisy inputs: the weight of the silhouette-depth term
+#: (:func:`osn.train.losses.edge_excess`; docs/training.md, "Losses").
+W_EDGE_NOISY = 1.0
+
+
+def resolve_w_edge(value: float | str, noisy: bool) -> float:
+    """The silhouette-depth term's weight: ``auto`` is off on exact inputs, whose silhouettes need
+    no correction (there the term lowers the valid set's IoU), and :data:`W_EDGE_NOISY` on noisy
+    ones, where the objects' fields read their silhouettes too far and cut the contact bounds
+    tight; the term restores their recall (measurements in docs/experiments/)."""
+    return by_noise(value, noisy, 0.0, W_EDGE_NOISY)
 
 
 #: ``anchor_guide_samples: auto``: the guide pass's density samples along each of the anchor's
@@ -244,6 +259,20 @@ class TrainConfig:
     added to each field step, so the composite at sampled configurations cannot reshape an
     object's contacts to fit the labels. Unit: loss weight. Neutral: 0 (field steps as the
     paper's Eq. 8-10 alone)."""
+    w_edge: float | str = "auto"
+    """addition (experiments/2026-11-26-silhouette-depth.md): Weight of the silhouette-depth term
+    (``osn.train.losses.edge_excess``, objects but the anchor): an edge pixel's log depth may
+    exceed its inner neighbour's by at most ``edge_slope``, the excess squared. ``auto``
+    (:func:`resolve_w_edge`): 0 on exact inputs, :data:`W_EDGE_NOISY` on noisy ones
+    (:mod:`osn.preprocess.depth_noise`). Unit: loss weight. Neutral: 0 (term off)."""
+    edge_rays: int = 64
+    """addition (experiments/2026-11-26-silhouette-depth.md): Silhouette pixels (each with its inner
+    neighbour) drawn per object and step for ``w_edge``'s term. Unit: rays per object and step.
+    Neutral: none of its own (``w_edge: 0`` switches the term off)."""
+    edge_slope: float = 0.02
+    """addition (experiments/2026-11-26-silhouette-depth.md): How far an edge pixel's log depth may
+    exceed its inner neighbour's before ``w_edge``'s term counts it. Unit: difference of natural
+    log depths (unit-free). Neutral: none of its own (``w_edge: 0`` switches the term off)."""
     free_space: str = "ordered"
     """addition (experiments/2026-11-25-valid-set-scene-suite.md,
     experiments/2026-11-28-free-space-ordered.md): Which pixels are an object's free pixels for

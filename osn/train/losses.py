@@ -31,6 +31,25 @@ def sparse_depth_loss(depth: torch.Tensor, target: torch.Tensor, robust: float =
     return (c2 * torch.log1p(r2 / c2)).mean()
 
 
+def edge_excess(depth: torch.Tensor, acc: torch.Tensor, inner_depth: torch.Tensor, inner_acc: torch.Tensor,
+                slope: float) -> torch.Tensor:
+    """Mean squared excess of silhouette rays' log depth over their inner neighbours' (held fixed)
+    beyond ``slope``; depths ``(n,)`` are the renderer's unnormalised ``sum w t`` with opacity ``acc``.
+
+    On a silhouette ray the field's soft edge is crossed only partly, and the opacity term then
+    puts the rest of the ray's weight behind the surface: the edge reads farther than the object
+    and the contact bounds it sets come out tight (docs/training.md). One-sided, so an edge may
+    read nearer than inside (a rim in front); only rays where both hit the object (``acc > 0.5``)
+    count, an empty ray having no depth. 0 (with a gradient path) when none does.
+    """
+    hit = (acc > 0.5) & (inner_acc > 0.5)
+    if not bool(hit.any()):
+        return acc.sum() * 0.0
+    d = torch.log(depth[hit] / acc[hit])
+    d_in = torch.log(inner_depth[hit] / inner_acc[hit]).detach()
+    return F.relu(d - d_in - slope).square().mean()
+
+
 def disparity_curvature(depth: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
     """Mean squared second difference of disparity along pixel strips, relative to the middle
     pixel's (held fixed): ``depth``, ``acc`` ``(S, L)`` the renderer's ``sum w t`` and opacity on

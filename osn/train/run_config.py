@@ -14,18 +14,16 @@ from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS
 
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :func:`upgrade_run_config` fills them in.
-ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0,
+ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
                                "w_hidden_smooth": 0.0}
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
 #: that trains as today: :func:`upgrade_run_config` drops them at that value and refuses any other.
 REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
-                                   "uncertain_acc": "coverage_threshold",  # a name: that option's value
-                                   "w_edge": 0.0, "edge_rays": 64, "edge_slope": 0.02}
+                                   "uncertain_acc": "coverage_threshold"}  # a name: that option's value
 #: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
 #: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
 AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
-                               "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others",
-                               "w_edge": "0 on the oracle's inputs, 1 on others (the term is gone)"}
+                               "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others"}
 
 
 def upgrade_run_config(d: dict[str, Any], defaults: Any) -> dict[str, Any]:

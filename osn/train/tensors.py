@@ -163,6 +163,36 @@ class SceneTensors:
             out.append(centre[:, None] + torch.arange(-h, h + 1, device=self.device)[None, :] * step)
         return torch.cat(out)
 
+    def edge_pairs(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per object its silhouette pixels and, for each, the 4-neighbour on its mask farthest from
+        the mask's boundary: two flat ``(E,)`` index tensors (same frame). The image border is no
+        silhouette; pixels of one-pixel-wide parts (no neighbour deeper inside) are left out."""
+        from scipy.ndimage import distance_transform_edt
+
+        T, H, W = self.T, self.H, self.W
+        lab = self.labels.reshape(T, H, W).cpu().numpy()
+        ok = ~self.ignored.reshape(T, H, W).cpu().numpy()
+        flat = np.arange(T * H * W).reshape(T, H, W)
+        # Each pixel's 4 neighbours as (destination, source) slices; off-image ones stay empty.
+        shifts = [((slice(None), slice(max(-dy, 0), H - max(dy, 0)), slice(max(-dx, 0), W - max(dx, 0))),
+                   (slice(None), slice(max(dy, 0), H - max(-dy, 0)), slice(max(dx, 0), W - max(-dx, 0))))
+                  for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        out = []
+        for k in range(self.K):
+            m = lab == k
+            dist = np.stack([distance_transform_edt(m[t]) for t in range(T)])  # 0 off the mask, 1 on its edge
+            best = np.zeros_like(dist)  # the deepest neighbour's distance, and its flat index
+            arg = np.full(dist.shape, -1, dtype=np.int64)
+            for dst, src in shifts:
+                nd = np.zeros_like(dist)
+                nf = np.full(dist.shape, -1, dtype=np.int64)
+                nd[dst], nf[dst] = dist[src], flat[src]
+                better = nd > best
+                best, arg = np.where(better, nd, best), np.where(better, nf, arg)
+            sel = m & ok & (dist == 1.0) & (best > 1.0)
+            out.append((torch.from_numpy(flat[sel]).to(self.device), torch.from_numpy(arg[sel]).to(self.device)))
+        return out
+
     @property
     def has_depth(self) -> bool:
         return self.sp_depth.numel() > 0

@@ -25,9 +25,9 @@ from osn.model.volume import RenderOutput, render
 from osn.preprocess.depth_noise import depth_consistency
 from osn.preprocess.inputs import SceneInputs
 from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
-                              resolve_anchor_guide_samples, resolve_depth_robust)
+                              resolve_anchor_guide_samples, resolve_depth_robust, resolve_w_edge)
 from osn.train.labels import build_label_pool, near_positives
-from osn.train.losses import disparity_curvature, sparse_depth_loss
+from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
 
@@ -51,6 +51,7 @@ class Trainer:
         self.depth_consistency = depth_consistency(inputs)
         noisy = self.depth_consistency.noisy
         self.depth_robust = resolve_depth_robust(cfg.depth_robust, noisy)
+        self.w_edge = resolve_w_edge(cfg.w_edge, noisy)
         self.source = inputs.source
         K = self.st.K
         if self.st.unposed_pixels:
@@ -83,6 +84,7 @@ class Trainer:
         # (j, k): j in front of k by the last label pool; `free_space: ordered` stops carving k there
         self.in_front: frozenset[tuple[int, int]] = frozenset()
         self.free = self._free_pixels()
+        self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
         self.hidden_strips = self.st.hidden_anchor_strips(HIDDEN_STRIP_LENGTH) if cfg.w_hidden_smooth > 0 else None
         self._make_field_opt()
 
@@ -177,6 +179,18 @@ class Trainer:
             return torch.zeros((), device=self.device)
         return self._render_alone(k, free[self._randint(len(free), cfg.free_rays)]).acc.square().mean()
 
+    def _edge_loss(self, k: int) -> torch.Tensor:
+        """:func:`edge_excess` of object k alone on ``edge_rays`` of its silhouette pixels and their
+        inner neighbours (:meth:`SceneTensors.edge_pairs`)."""
+        cfg = self.cfg
+        edge, inner = self.edges[k]
+        if not len(edge):
+            return torch.zeros((), device=self.device)
+        i = self._randint(len(edge), cfg.edge_rays)
+        out = self._render_alone(k, torch.cat([edge[i], inner[i]]))
+        n = len(i)
+        return edge_excess(out.depth[:n], out.acc[:n], out.depth[n:], out.acc[n:], cfg.edge_slope)
+
     def _hidden_loss(self) -> torch.Tensor:
         """:func:`disparity_curvature` of the anchor alone on ``hidden_strips`` strips across
         pixels where objects hide it (:meth:`SceneTensors.hidden_anchor_strips`)."""
@@ -238,6 +252,10 @@ class Trainer:
                 losses["hidden_smooth"] = l_hidden.item()
             l_free = self._free_loss(k)
             total = total + cfg.w_free * l_free
+            if self.w_edge > 0 and k != st.anchor:  # the anchor's edges are against objects, not a silhouette
+                l_edge = self._edge_loss(k)
+                total = total + self.w_edge * l_edge
+                losses["edge"] = losses.get("edge", 0.0) + l_edge.item() / st.K
             losses["free"] += l_free.item() / st.K
             losses["rgb"] += l_rgb.item() / st.K
             losses["depth"] += l_depth.item() / st.K

@@ -91,17 +91,6 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_hidden_smooth": "auto"}))
     with pytest.raises(ValueError, match=r"config.yaml: written before w_hidden_smooth became one number.*0.3 on the oracle"):
         TrainConfig.from_yaml(path, run_config=True)
-    # The silhouette-depth term, gone: a run trained without it (the oracle's) reads, one trained
-    # with it is refused, and one whose auto chose by the source says what auto meant.
-    gone = {"w_edge": 0.0, "edge_rays": 64, "edge_slope": 0.02}
-    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), **gone}))
-    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
-    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), **gone, "w_edge": 1.0}))
-    with pytest.raises(ValueError, match=r"trained with w_edge: 1.0, which this version no longer has"):
-        TrainConfig.from_yaml(path, run_config=True)
-    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), **gone, "w_edge": "auto"}))
-    with pytest.raises(ValueError, match=r"w_edge.*1 on others"):
-        TrainConfig.from_yaml(path, run_config=True)
 
 
 def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_resolution(tmp_path: Path) -> None:

@@ -26,14 +26,14 @@ PAPER_GPU = REPO / "configs" / "osn-paper-gpu.yaml"
 #: test_every_addition_is_neutral_in_the_paper_configs until it is listed here.
 NEUTRAL = {
     "final_scale_iters": 0, "anchor_guide_samples": 0, "depth_robust": 0.0, "w_opacity": 0.0, "w_free": 0.0,
-    "w_distortion": 0.0, "w_hidden_smooth": 0.0, "w_alone": 0.0,
+    "w_distortion": 0.0, "w_hidden_smooth": 0.0, "w_alone": 0.0, "w_edge": 0.0,
     "free_space": "none", "free_band": 0, "free_band_objects": 0, "scale_lr_final": 1.0, "label_rays": 0,
     "label_replay": 0.0, "label_trim": 0.0, "final_label_trim": "label_trim", "pair_minority": 0.0,
     "label_stride": 1,
     "field.object_resolution": 0, "field.anchor_planes": 0,
 }
 #: Additions switched off by another option (their docstrings: "none of its own").
-SWITCHED_BY_OTHERS = {"hidden_strips", "free_rays"}
+SWITCHED_BY_OTHERS = {"hidden_strips", "edge_rays", "edge_slope", "free_rays"}
 #: Additions the paper leaves open: its framework takes any per-object representation (Sec. 3.1).
 REPRESENTATION = {"field.kind"}
 #: What may differ between the CPU-size and the GPU-size paper configs: sizes, not the method.
@@ -54,7 +54,7 @@ def test_every_addition_is_neutral_in_the_paper_configs(path: Path) -> None:
         want = _value(cfg, neutral) if isinstance(neutral, str) and hasattr(cfg, neutral) else neutral
         assert _value(cfg, name) == want, name
     # What switches the others off.
-    assert cfg.w_hidden_smooth == 0 and cfg.free_space == "none"
+    assert cfg.w_hidden_smooth == 0 and cfg.w_edge == 0 and cfg.free_space == "none"
 
 
 @pytest.mark.parametrize("path", [PAPER, PAPER_GPU], ids=["cpu", "gpu"])

@@ -16,7 +16,7 @@ from osn.preprocess.oracle import oracle_inputs
 from osn.train import TrainConfig, Trainer, build_schedule
 from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
-from osn.train.losses import disparity_curvature, sparse_depth_loss
+from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
 from tests.osn.train.common import with_phantoms
 
@@ -475,28 +475,77 @@ def test_trainer_resolves_auto_depth_robustness_from_the_measured_noise(tiny_dat
     assert Trainer(with_phantoms(inputs), _cfg(depth_robust=0.0), torch.device("cpu")).depth_robust == 0.0
 
 
-def test_auto_options_follow_the_measured_noise_not_the_label(tiny_dataset: Path) -> None:
-    """The options that correct for noisy inputs read whether the depths agree across frames
-    (:mod:`osn.preprocess.depth_noise`), never the source label: exact inputs labelled SfM train
-    as the oracle's do, the oracle's with phantom depths as SfM's do. The removed silhouette-depth
-    term is refused in a user's config, naming it."""
-    from osn.train.config import DEPTH_ROBUST_NOISY
+def test_edge_pairs_are_silhouette_pixels_and_their_inner_neighbours(tiny_dataset: Path) -> None:
+    """Every edge pixel lies on its object's mask with a 4-neighbour off it (the image border is
+    not a silhouette); its partner is a 4-neighbour on the mask farther from the boundary; every
+    silhouette pixel with such a neighbour is there."""
+    from scipy.ndimage import distance_transform_edt
 
+    st = SceneTensors(oracle_inputs(tiny_dataset), torch.device("cpu"))
+    lab = st.labels.reshape(st.T, st.H, st.W).numpy()
+    HW = st.H * st.W
+    for k, (edge, inner) in enumerate(st.edge_pairs()):
+        assert len(edge) > 0 and len(edge) == len(inner)
+        t, y, x = (edge // HW).numpy(), (edge % HW // st.W).numpy(), (edge % st.W).numpy()
+        ti, yi, xi = (inner // HW).numpy(), (inner % HW // st.W).numpy(), (inner % st.W).numpy()
+        assert np.all(t == ti) and np.all(np.abs(y - yi) + np.abs(x - xi) == 1)
+        assert np.all(lab[t, y, x] == k) and np.all(lab[ti, yi, xi] == k)
+        dist = np.stack([distance_transform_edt(lab[f] == k) for f in range(st.T)])
+        assert np.all(dist[t, y, x] == 1.0) and np.all(dist[ti, yi, xi] > 1.0)
+        got = set(edge.tolist())
+        for f, yy, xx in zip(*np.nonzero(dist == 1.0)):
+            nb = [dist[f, yy + dy, xx + dx] for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1))
+                  if 0 <= yy + dy < st.H and 0 <= xx + dx < st.W]
+            assert (f * HW + yy * st.W + xx in got) == (max(nb) > 1.0)
+
+
+def test_edge_excess_is_one_sided_beyond_the_slope_and_skips_empty_rays() -> None:
+    """Depths are the renderer's ``sum w t`` with opacity ``acc``: an edge reading 10% farther
+    than inside costs (log 1.1 - slope)^2, one reading nearer or within the slope costs nothing,
+    and a ray that misses the object (acc <= 0.5, depth +inf once normalised) is left out."""
+
+    slope = 0.02
+
+    acc = torch.tensor([1.0, 0.8, 1.0, 0.2, 1.0])
+    depth = torch.tensor([2.2, 0.8 * 1.9, 2.0 * (1 + slope / 2), 0.0, 3.0], requires_grad=True)
+    inner_depth = torch.tensor([2.0, 2.0, 2.0, 2.0, 3.0])
+    inner_acc = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.3])
+    loss = edge_excess(depth, acc, inner_depth, inner_acc, slope)
+    expect = (np.log(1.1) - slope) ** 2 / 3  # rays 0-2 count; only ray 0 exceeds
+    assert loss.item() == pytest.approx(expect, rel=1e-5)
+    loss.backward()
+    assert depth.grad[0] > 0 and torch.all(depth.grad[1:] == 0)  # pulls the far edge in, nothing else
+    none = edge_excess(depth[3:4], acc[3:4], inner_depth[3:4], inner_acc[3:4], slope)
+    assert float(none) == 0.0 and torch.isfinite(none)
+
+
+def test_edge_term_is_reported_when_on_and_auto_follows_the_measured_noise(tiny_dataset: Path) -> None:
+    """``w_edge > 0``: stage-1 steps report a finite edge loss. ``auto`` (the default) and the
+    other options that correct for noisy inputs read whether the depths agree across frames
+    (:mod:`osn.preprocess.depth_noise`), never the source label: exact inputs labelled SfM train
+    as the oracle's do, the oracle's with phantom depths as SfM's do."""
+    from osn.train.config import DEPTH_ROBUST_NOISY, W_EDGE_NOISY, resolve_w_edge
+
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(w_edge=1.0), torch.device("cpu"))
+    out = tr.step_stage1()
+    assert "edge" in out and np.isfinite(out["edge"])
     fcfg = dataclasses.replace(_cfg().field, object_resolution="auto")
     exact = oracle_inputs(tiny_dataset)
     for inputs in (exact, dataclasses.replace(exact, source="colmap")):
         auto = Trainer(inputs, _cfg(field=fcfg), torch.device("cpu"))
+        assert auto.w_edge == 0.0 and auto.edges is None and "edge" not in auto.step_stage1()
         assert auto.depth_robust == 0.0 and not auto.depth_consistency.noisy
         assert auto.resolutions == [[16, 24]] * inputs.num_objects
     noisy = Trainer(with_phantoms(exact, 0.05), _cfg(field=fcfg), torch.device("cpu"))
     assert noisy.st.inputs.source == "oracle" and noisy.depth_consistency.noisy
-    assert noisy.depth_robust == DEPTH_ROBUST_NOISY > 0
+    assert noisy.w_edge == W_EDGE_NOISY > 0 and noisy.depth_robust == DEPTH_ROBUST_NOISY > 0
+    assert "edge" in noisy.step_stage1()
     a = exact.anchor_pos
     assert all(r[-1] < 24 for k, r in enumerate(noisy.resolutions) if k != a) and noisy.resolutions[a] == [16, 24]
     assert noisy.state_dict()["depth_consistency"]["noisy"] is True
-    assert "edge" not in noisy.step_stage1()
-    with pytest.raises(TypeError, match="w_edge"):
-        _cfg(w_edge=1.0)
+    assert resolve_w_edge("auto", noisy=True) == W_EDGE_NOISY and resolve_w_edge(0.5, noisy=False) == 0.5
+    with pytest.raises(ValueError, match="w_edge"):
+        _cfg(w_edge="sometimes")
 
 
 def test_final_phase_trims_the_same_whatever_the_inputs_source(tiny_dataset: Path) -> None:
