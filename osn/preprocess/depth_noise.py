@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from osn.preprocess.freespace import contradicted_share
+from osn.preprocess.freespace import MARGIN, contradicted_share, occlusion_tests
 from osn.preprocess.inputs import SceneInputs
 
 #: Inputs whose worst object contradicts itself in more than this share of its tests are noisy.
@@ -43,7 +43,8 @@ class DepthConsistency:
 def depth_consistency(inputs: SceneInputs) -> DepthConsistency:
     """Measure every object's :func:`~osn.preprocess.freespace.contradicted_share` in its own
     frame and unit; noisy when the worst exceeds :data:`NOISY_SHARE`."""
-    shares = tuple(contradicted_share(o.cam_to_obj, o.sparse_pix, o.sparse_depth, inputs.K, inputs.width, inputs.height)
+    K, W, H = inputs.K, inputs.width, inputs.height
+    shares = tuple(contradicted_share(occlusion_tests(o.cam_to_obj, o.sparse_pix, o.sparse_depth, K, W, H, MARGIN))
                    for o in inputs.objects)
     worst = max(shares, default=0.0)
     return DepthConsistency(shares, worst, worst > NOISY_SHARE)

@@ -104,20 +104,11 @@ def occluding_share(
             for t, h in occlusion_tests(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)]
 
 
-def contradicted_share(
-    cam_to_obj: np.ndarray,
-    sparse_pix: list[np.ndarray],
-    sparse_depth: list[np.ndarray],
-    K: np.ndarray,
-    width: int,
-    height: int,
-    margin: float = MARGIN,
-) -> float:
-    """The share of all of an object's depth-against-frame tests (:func:`occlusion_tests`, the
-    same arguments) in which a depth lies ``margin`` in front of what the other frame saw there:
-    0 on exact depths but for blocks straddling a depth edge, more where SfM's poses or points are
-    off. 0 when nothing could be tested."""
-    counts = occlusion_tests(cam_to_obj, sparse_pix, sparse_depth, K, width, height, margin)
+def contradicted_share(counts: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The share of all of an object's depth-against-frame tests (``counts``: what
+    :func:`occlusion_tests` returns) in which a depth lies in front of what the other frame saw
+    there: 0 on exact depths but for blocks straddling a depth edge, more where SfM's poses or
+    points are off. 0 when nothing could be tested."""
     tested = sum(float(t.sum()) for t, _ in counts)
     return sum(float(h.sum()) for _, h in counts) / tested if tested > 0 else 0.0
 

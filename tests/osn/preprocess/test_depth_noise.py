@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from osn.preprocess.depth_noise import NOISY_SHARE, depth_consistency
-from osn.preprocess.freespace import contradicted_share
+from osn.preprocess.freespace import MARGIN, contradicted_share, occlusion_tests
 from osn.preprocess.oracle import oracle_inputs
 from tests.osn.train.common import with_phantoms
 
@@ -35,11 +35,15 @@ def test_the_share_does_not_depend_on_the_objects_unit_and_needs_two_frames(tiny
     o = with_phantoms(oracle_inputs(tiny_dataset), 0.05).objects[0]
     inputs = oracle_inputs(tiny_dataset)
     K, W, H = inputs.K, inputs.width, inputs.height
-    base = contradicted_share(o.cam_to_obj, o.sparse_pix, o.sparse_depth, K, W, H)
+
+    def share(poses: np.ndarray, pix: list[np.ndarray], depths: list[np.ndarray]) -> float:
+        return contradicted_share(occlusion_tests(poses, pix, depths, K, W, H, MARGIN))
+
+    base = share(o.cam_to_obj, o.sparse_pix, o.sparse_depth)
     for unit in (1e-4, 1e4):
         poses = o.cam_to_obj.copy()
         poses[:, :3, 3] *= unit
-        assert np.isclose(contradicted_share(poses, o.sparse_pix, [d * unit for d in o.sparse_depth], K, W, H), base)
+        assert np.isclose(share(poses, o.sparse_pix, [d * unit for d in o.sparse_depth]), base)
     assert base > 0
-    assert contradicted_share(o.cam_to_obj[:1], o.sparse_pix[:1], o.sparse_depth[:1], K, W, H) == 0.0
-    assert contradicted_share(o.cam_to_obj, [p[:0] for p in o.sparse_pix], [d[:0] for d in o.sparse_depth], K, W, H) == 0.0
+    assert share(o.cam_to_obj[:1], o.sparse_pix[:1], o.sparse_depth[:1]) == 0.0
+    assert share(o.cam_to_obj, [p[:0] for p in o.sparse_pix], [d[:0] for d in o.sparse_depth]) == 0.0
