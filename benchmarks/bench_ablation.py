@@ -42,7 +42,7 @@ FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "label-rule": ("a sample may violate a few contact rays; silhouette bleeds dropped; positives replayed",
                    {"label_trim": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
     "free-space": ("density carved where another object owns the pixel",
-                   {"free_space": "none", "w_free": 0.0, "free_band": 0, "free_band_objects": 0}),
+                   {"w_free": 0.0, "free_band": 0, "free_band_objects": 0}),
     "depth-terms": ("robust depth loss, silhouette depth, distortion loss",
                     {"depth_robust": 0.0, "w_edge": 0.0, "w_distortion": 0.0}),
     "anchor-terms": ("the room's hidden-surface smoothness, guided samples, colour planes",

@@ -29,6 +29,10 @@ from scenecore.config import Rule, choice, integer, number, validate
 #: (TensoRF's ``density_shift``): unobserved space then stays empty instead of becoming floaters.
 DENSITY_SHIFT = -4.0
 
+#: Adam rate of the fields' networks (TensoRF's appearance basis and colour MLP; a dense field has
+#: none): the paper's 0.001 (appendix "Details of the Joint Optimization", Training Schedule).
+NET_LR = 1e-3
+
 
 def grid_sample_2d(planes: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear lookup of ``planes (P, C, H, W)`` at ``uv (P, N, 2)`` in [-1, 1]; returns ``(P, C, N)``."""
@@ -78,8 +82,8 @@ class Field(nn.Module):
         """Resample the parameters to ``resolution`` voxels per axis (keeps the represented field)."""
         raise NotImplementedError
 
-    def param_groups(self, lr_grid: float, lr_net: float) -> list[dict]:
-        """Optimiser parameter groups: grids and networks learn at different rates (as TensoRF)."""
+    def param_groups(self, lr_grid: float, lr_net: float = NET_LR) -> list[dict]:
+        """Optimiser parameter groups: grids at ``lr_grid``, networks at ``lr_net`` (as TensoRF)."""
         raise NotImplementedError
 
 
@@ -207,7 +211,7 @@ class DenseGridField(Field):
         self.grid = nn.Parameter(g.reshape(4, -1).T.contiguous())
         self.resolution = r
 
-    def param_groups(self, lr_grid: float, lr_net: float) -> list[dict]:
+    def param_groups(self, lr_grid: float, lr_net: float = NET_LR) -> list[dict]:
         return [{"params": [self.grid] + ([self.planes] if self.planes is not None else []), "lr": lr_grid}]
 
 
@@ -230,7 +234,11 @@ _VEC_MODE = (2, 1, 0)
 
 class TensoRFVM(Field):
     """TensoRF vector-matrix field: sigma = sum_j 1^T (h_j(plane) * k_j(line)),
-    A = B [f_j(plane) * g_j(line)]_j, rgb = MLP(A, PE(A), dir, PE(dir))."""
+    A = B [f_j(plane) * g_j(line)]_j, rgb = MLP(A, PE(A), dir, PE(dir)).
+
+    The component counts default to the paper's (appendix "Details of Networks": 16 density and
+    48 appearance components, TensoRF's 27-channel appearance basis); ``hidden`` is the colour
+    MLP's width (``field.hidden``)."""
 
     view_dependent = True
 
@@ -303,7 +311,7 @@ class TensoRFVM(Field):
             setattr(self, name, nn.Parameter(F.interpolate(p, size=(r, 1), mode="bilinear", align_corners=True).contiguous()))
         self.resolution = r
 
-    def param_groups(self, lr_grid: float, lr_net: float) -> list[dict]:
+    def param_groups(self, lr_grid: float, lr_net: float = NET_LR) -> list[dict]:
         grids = [self.density_planes, self.density_lines, self.app_planes, self.app_lines]
         return [{"params": grids, "lr": lr_grid}, {"params": list(self.basis.parameters()) + list(self.mlp.parameters()), "lr": lr_net}]
 
@@ -314,8 +322,10 @@ class TensoRFVM(Field):
 FIELD_ADDED_LATER: dict[str, Any] = {"object_resolution": 0, "anchor_planes": 0}
 #: ``field`` options that are gone, with the value that trains as today (the term off): a run's
 #: config at that value reads without them (``TrainConfig.from_yaml(..., run_config=True)``), and
-#: ``load_run`` ignores them (they shaped training, not the fields it renders).
-FIELD_REMOVED_OPTIONS: dict[str, Any] = {"tv_density": 0.0}
+#: ``load_run`` ignores them (TensoRF's sizes are its constructor's defaults now: a checkpoint of
+#: other sizes does not load).
+FIELD_REMOVED_OPTIONS: dict[str, Any] = {"tv_density": 0.0, "density_components": 16, "appearance_components": 48,
+                                         "app_dim": 27, "lr_net": 1e-3}
 
 
 #: Most voxels per axis of a grid (the paper's largest is 640) and texels per side of a plane:
@@ -330,8 +340,8 @@ _FIELD_RULES: dict[str, Rule] = {
     "initial_resolution": integer(2, MAX_RESOLUTION),
     "upsample_steps": integer(0, 64),
     # A fractional count (1.5 layers) would crash later, as a traceback.
-    **{name: integer(1, 4096) for name in ("density_components", "appearance_components", "app_dim", "hidden")},
-    **{name: number(0.0, lo_open=True, what="a positive learning rate") for name in ("lr_grid", "lr_net")},
+    "hidden": integer(1, 4096),
+    "lr_grid": number(0.0, lo_open=True, what="a positive learning rate"),
     "object_resolution": Rule(lambda v: v == "auto" or integer(0, MAX_RESOLUTION).ok(v), f"auto or an integer in 0..{MAX_RESOLUTION}"),
     # Bilinear interpolation needs 2 texels per side; 0 = no planes.
     "anchor_planes": Rule(lambda v: v == "auto" or (integer(0, MAX_PLANE_SIZE).ok(v) and v != 1),
@@ -366,18 +376,6 @@ class FieldConfig:
     coarse-to-fine, as TensoRF): Log-spaced resolution increases from ``initial_resolution`` to
     the final resolution over the first 40% of all field iterations. Unit: steps. Neutral: 0 (the
     fields start at their final resolution)."""
-    density_components: int = 16
-    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: 16
-    density components): TensoRF's density components per VM plane and line (``tensorf`` only).
-    Unit: components. Neutral: none."""
-    appearance_components: int = 48
-    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: 48
-    appearance components): TensoRF's appearance components per VM plane and line (``tensorf``
-    only). Unit: components. Neutral: none."""
-    app_dim: int = 27
-    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: the
-    appearance basis B, sized as TensoRF's): Width of the appearance feature the colour MLP reads
-    (``tensorf`` only). Unit: channels. Neutral: none."""
     hidden: int = 64
     """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: the
     tiny colour MLP, as TensoRF's): Width of the colour MLP's two hidden layers (``tensorf``
@@ -386,10 +384,6 @@ class FieldConfig:
     """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): Adam learning
     rate of the grids (the dense grid, the anchor's colour planes, TensoRF's planes and lines).
     Unit: learning rate. Neutral: none (must be positive)."""
-    lr_net: float = 1e-3
-    """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam at 0.001): Adam
-    learning rate of the fields' networks (TensoRF's appearance basis and colour MLP; a dense field
-    has none). Unit: learning rate. Neutral: none (must be positive)."""
     object_resolution: int | str = "auto"
     """addition (experiments/2026-11-27-object-resolution-anchor-planes.md): Final voxels per axis
     of every object's field but the anchor's (at most ``resolution``), grown on the anchor's
@@ -436,5 +430,5 @@ def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: 
     if cfg.kind == "dense":
         return DenseGridField(bbox, r, planes)
     if cfg.kind == "tensorf":
-        return TensoRFVM(bbox, r, cfg.density_components, cfg.appearance_components, cfg.app_dim, cfg.hidden, seed=seed)
+        return TensoRFVM(bbox, r, hidden=cfg.hidden, seed=seed)
     raise ValueError(f"unknown field kind {cfg.kind!r} (expected 'dense' or 'tensorf')")

@@ -218,7 +218,7 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
             fields.append(f.to(dev).eval())
         net = None
         if ckpt.get("net") is not None:
-            net = ScaleNet(inputs.num_objects - 1, cfg["scale_width"], cfg["scale_layers"])
+            net = ScaleNet(inputs.num_objects - 1)
             net.load_state_dict(ckpt["net"])
             net = net.to(dev).eval()
     except (KeyError, TypeError, ValueError, RuntimeError) as e:

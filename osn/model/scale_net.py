@@ -43,7 +43,8 @@ def check_scores(p: torch.Tensor, where: str = "") -> torch.Tensor:
 
 
 class ScaleNet(nn.Module):
-    """MLP with ``layers`` hidden layers of ``width`` (paper: 4 x 64) and a validity logit."""
+    """MLP with ``layers`` hidden layers of ``width`` and a validity logit; the defaults are the
+    paper's (appendix "Details of Networks", Object Scale Network: 4 hidden layers of 64 nodes)."""
 
     def __init__(self, num_free: int, width: int = 64, layers: int = 4, seed: int = 0) -> None:
         super().__init__()

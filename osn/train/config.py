@@ -11,17 +11,17 @@ import numpy as np
 import yaml
 
 from scenecore.cameras import project
-from scenecore.config import Rule, choice, from_dict, integer, number, validate
+from scenecore.config import Rule, from_dict, integer, number, validate
 
 from osn.model.fields import FieldConfig
 from osn.train.run_config import upgrade_run_config
 from osn.preprocess.inputs import SceneInputs
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "edge_rays", "hidden_strips", "scale_width", "scale_layers", "scale_samples",
+_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples",
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
-_NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays", "free_rays",
+_NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "free_band", "free_band_objects", "label_rays", "label_stride")
 _FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "scale_lr_final")
 
@@ -35,7 +35,7 @@ def _auto_or(rule: Rule) -> Rule:
 MAX_SAMPLES_PER_RAY = 4096
 MAX_RAYS = 1 << 20
 MAX_POINTS = 1 << 24
-_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays", "free_rays", "edge_rays", "label_rays", "hidden_strips")
+_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays", "label_rays")
 _SIZED_BY_POINTS = ("scale_samples", "candidates", "eval_pixels", "iou_samples")
 
 
@@ -65,7 +65,6 @@ _RULES: dict[str, Rule] = {
     "w_distortion": number(0.0),
     "w_hidden_smooth": number(0.0),
     "w_edge": _auto_or(number(0.0)),
-    "edge_slope": number(0.0),
     "depth_robust": _auto_or(number(0.0)),
     "final_label_trim": number(0.0, 1.0),
     "anchor_guide_samples": _auto_or(integer(0)),
@@ -78,7 +77,6 @@ _RULES: dict[str, Rule] = {
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
     # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
     "valid_threshold": number(0.0, 1.0, hi_open=True),
-    "free_space": choice("none", "anchor", "objects", "ordered", "all"),
 }
 
 
@@ -234,10 +232,14 @@ class TrainConfig:
     pulls an object's opacity to 1 on every pixel of its mask, so a semi-transparent field cannot
     shorten its depths. Unit: loss weight. Neutral: 0 (term off)."""
     w_free: float = 1.0
-    """addition (experiments/2026-11-24-measurements-two-cores.md): Weight of the stage-1
-    free-space term, the squared opacity of an object alone on ``free_rays`` of its free pixels
-    (``free_space``), so objects do not bleed past their silhouettes. Unit: loss weight. Neutral:
-    0 (term off)."""
+    """addition (experiments/2026-11-24-measurements-two-cores.md,
+    experiments/2026-11-28-free-space-ordered.md): Weight of the stage-1 free-space term, the
+    squared opacity of an object alone on :data:`osn.train.trainer.FREE_RAYS` of its free pixels
+    per step, so objects do not bleed past their silhouettes. An object's free pixels
+    (``osn.train.tensors.SceneTensors.free_pixels``) show the anchor or nothing within
+    ``free_band`` of its mask, or, for objects but the anchor, another object within
+    ``free_band_objects``, except objects the last label pool put in front of it. Unit: loss
+    weight. Neutral: 0 (term off)."""
     w_distortion: float = 0.03
     """addition (experiments/2026-11-26-seed-spread-distortion.md): Weight of mip-NeRF 360's
     distortion loss on an object's own pixels in stage 1 (how spread the weights are along the
@@ -246,13 +248,9 @@ class TrainConfig:
     w_hidden_smooth: float = 0.3
     """addition (experiments/2026-11-28-hidden-anchor-smoothness.md,
     experiments/2026-11-29-lost-recall-from-sfm-inputs.md): Weight of the anchor's disparity
-    curvature on strips across pixels that objects hide it on
-    (``osn.train.losses.disparity_curvature``): zero on any plane, so a floor continues behind
-    what stands on it. Unit: loss weight. Neutral: 0 (term off)."""
-    hidden_strips: int = 32
-    """addition (experiments/2026-11-28-hidden-anchor-smoothness.md): Strips of five adjacent
-    pixels drawn per step for ``w_hidden_smooth``'s term. Unit: strips per step. Neutral: none of
-    its own (``w_hidden_smooth: 0`` switches the term off)."""
+    curvature on :data:`osn.train.trainer.HIDDEN_STRIPS` strips per step across pixels that
+    objects hide it on (``osn.train.losses.disparity_curvature``): zero on any plane, so a floor
+    continues behind what stands on it. Unit: loss weight. Neutral: 0 (term off)."""
     w_alone: float = 1.0
     """addition (experiments/2026-11-24-what-limited-valid-set-iou.md,
     experiments/2026-11-25-valid-set-scene-suite.md): Weight of every object's stage-1 objective
@@ -261,47 +259,22 @@ class TrainConfig:
     paper's Eq. 8-10 alone)."""
     w_edge: float | str = "auto"
     """addition (experiments/2026-11-26-silhouette-depth.md): Weight of the silhouette-depth term
-    (``osn.train.losses.edge_excess``, objects but the anchor): an edge pixel's log depth may
-    exceed its inner neighbour's by at most ``edge_slope``, the excess squared. ``auto``
+    (``osn.train.losses.edge_excess``, objects but the anchor, on :data:`osn.train.trainer.EDGE_RAYS`
+    silhouette pixels per object and step): an edge pixel's log depth may exceed its inner
+    neighbour's by at most :data:`osn.train.losses.EDGE_SLOPE`, the excess squared. ``auto``
     (:func:`resolve_w_edge`): 0 on exact inputs, :data:`W_EDGE_NOISY` on noisy ones
     (:mod:`osn.preprocess.depth_noise`). Unit: loss weight. Neutral: 0 (term off)."""
-    edge_rays: int = 64
-    """addition (experiments/2026-11-26-silhouette-depth.md): Silhouette pixels (each with its inner
-    neighbour) drawn per object and step for ``w_edge``'s term. Unit: rays per object and step.
-    Neutral: none of its own (``w_edge: 0`` switches the term off)."""
-    edge_slope: float = 0.02
-    """addition (experiments/2026-11-26-silhouette-depth.md): How far an edge pixel's log depth may
-    exceed its inner neighbour's before ``w_edge``'s term counts it. Unit: difference of natural
-    log depths (unit-free). Neutral: none of its own (``w_edge: 0`` switches the term off)."""
-    free_space: str = "ordered"
-    """addition (experiments/2026-11-25-valid-set-scene-suite.md,
-    experiments/2026-11-28-free-space-ordered.md): Which pixels are an object's free pixels for
-    ``w_free``: ``anchor`` (pixels showing the anchor or nothing), ``objects`` (also other
-    objects' pixels within ``free_band_objects`` of its mask), ``ordered`` (``objects`` until the
-    first label pool orders a pair, then not the pixels of objects in front of it), ``all``
-    (every other object's pixel within ``free_band``: the paper's masked images) or ``none``.
-    Unit: a choice. Neutral: ``none`` (no free pixels)."""
-    free_rays: int = 128
-    """addition (experiments/2026-11-24-measurements-two-cores.md): Free pixels drawn per object
-    and step for ``w_free``'s term. Unit: rays per object and step. Neutral: none of its own
-    (``w_free: 0`` or ``free_space: none`` switches the term off)."""
     free_band: int = 4
     """addition (experiments/2026-11-24-measurements-two-cores.md,
     experiments/2026-11-27-fields-lose-novel-views.md): How far from an object's mask a pixel
-    showing the anchor or nothing (with ``free_space: all``, any other object's pixel) may lie to
-    be one of its free pixels. Unit: pixels. Neutral: 0 (no such free pixels)."""
+    showing the anchor or nothing may lie to be one of its free pixels (``w_free``). Unit: pixels.
+    Neutral: 0 (no such free pixels)."""
     free_band_objects: int = 1
     """addition (experiments/2026-11-25-valid-set-scene-suite.md,
     experiments/2026-11-28-schedule-and-metrics-as-measured.md): How far from an object's mask
-    another object's pixel may lie to be one of its free pixels (``free_space: objects`` and
-    ``ordered``; objects but the anchor), for gaps the grid cannot resolve. Unit: pixels.
-    Neutral: 0 (no other object's pixel is free, as ``anchor``)."""
-    scale_width: int = 64
-    """paper (appendix "Details of Networks", Object Scale Network: 4 hidden layers of 64 nodes):
-    Width of the scale network's hidden layers. Unit: nodes per layer. Neutral: none."""
-    scale_layers: int = 4
-    """paper (appendix "Details of Networks", Object Scale Network: 4 hidden layers of 64 nodes):
-    Hidden layers of the scale network. Unit: layers. Neutral: none."""
+    another object's pixel may lie to be one of its free pixels (``w_free``; objects but the
+    anchor, and not the pixels of objects the label pool put in front), for gaps the grid cannot
+    resolve. Unit: pixels. Neutral: 0 (only the anchor's pixels and empty ones are free)."""
     scale_lr: float = 5e-3
     """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): The scale
     network's Adam learning rate at the start of every scale phase (the paper's is 0.001). Unit:

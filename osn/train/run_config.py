@@ -19,7 +19,22 @@ ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
 #: that trains as today: :func:`upgrade_run_config` drops them at that value and refuses any other.
 REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
-                                   "uncertain_acc": "coverage_threshold"}  # a name: that option's value
+                                   "uncertain_acc": "coverage_threshold",  # a name: that option's value
+                                   # sampling budgets and the scale network's size, constants now
+                                   "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128,
+                                   "scale_width": 64, "scale_layers": 4}
+
+
+def _free_space_today(d: dict[str, Any]) -> str:
+    """The removed ``free_space`` choice that trains as today for config ``d``: ``ordered`` (what
+    ``w_free`` carves now); any choice where the term is off; ``anchor`` or ``objects`` where no
+    other object's pixel is free (``free_band_objects: 0``), which carve what ``ordered`` does."""
+    old = d.get("free_space")
+    if d.get("w_free", 1.0) == 0 or (old in ("anchor", "objects") and d.get("free_band_objects", 1) == 0):
+        return old
+    return "ordered"
+
+
 #: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
 #: ``auto`` trained with, for the error a run's older ``config.yaml`` gets.
 AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0 on others",
@@ -39,12 +54,13 @@ def upgrade_run_config(d: dict[str, Any], defaults: Any) -> dict[str, Any]:
     field = d.get("field") if isinstance(d.get("field"), dict) else None
     # Each removed option's value today (a name: that option's value in this config).
     today = {k: d.get(n, getattr(defaults, n)) if isinstance(n, str) else n for k, n in REMOVED_OPTIONS.items()}
+    today["free_space"] = _free_space_today(d)
     today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
     named = {**d, **{f"field.{k}": v for k, v in (field or {}).items()}}
     if gone := [k for k, v in named.items() if k in today and v != today[k]]:
         raise ValueError("trained with " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this version no "
                          "longer has (it trains as " + ", ".join(f"{k}: {today[k]!r}" for k in gone) + ")")
-    out = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in REMOVED_OPTIONS}}
+    out = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in today}}
     if field is not None:
         out["field"] = {**FIELD_ADDED_LATER, **{k: v for k, v in field.items() if k not in FIELD_REMOVED_OPTIONS}}
     return out

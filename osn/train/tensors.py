@@ -99,40 +99,29 @@ class SceneTensors:
         self.sp_frame, self.sp_pix = cat(sp_frame, torch.long), cat(sp_pix, torch.long)
         self.sp_depth, self.sp_obj = cat(sp_depth, torch.float32), cat(sp_obj, torch.long)
 
-    def free_pixels(self, mode: str, band: int, object_band: int | None = None,
+    def free_pixels(self, band: int, object_band: int | None = None,
                     in_front: frozenset[tuple[int, int]] = frozenset()) -> list[torch.Tensor]:
-        """Per object the flat indices of pixels its field must leave empty, within ``band``
-        pixels of its mask in frames where it is present.
-
-        ``mode`` "anchor": pixels showing the anchor or nothing (objects are never behind the
-        anchor, e.g. a room that contains them); "objects": that, and for every object but the
-        anchor also the pixels of other objects within ``object_band`` pixels of its mask
-        (default ``band``); "ordered": "objects" but for object positions ``(j, k)`` in
-        ``in_front`` (j in front of k) j's pixels are not carved for k, which may be hidden there;
-        "all": every pixel of another object, for the anchor too (the paper's masked images; also
-        carves what other objects hide); "none": no pixels.
+        """Per object the flat indices of pixels its field must leave empty, in frames where it
+        is present: pixels showing the anchor or nothing within ``band`` pixels of its mask
+        (objects are never behind the anchor, e.g. a room that contains them), and, for every
+        object but the anchor, other objects' pixels within ``object_band`` pixels of its mask
+        (default ``band``), except those of j for object positions ``(j, k)`` in ``in_front``
+        (j in front of k: k may be hidden there).
         """
         T, H, W = self.T, self.H, self.W
         lab = self.labels.reshape(T, H, W)
         object_band = band if object_band is None else object_band
         out = []
         for k in range(self.K):
-            if mode == "none":
-                out.append(torch.zeros(0, dtype=torch.long, device=self.device))
-                continue
             mask = (lab == k).float()[:, None]
             near = F.max_pool2d(mask, 2 * band + 1, stride=1, padding=band)[:, 0] > 0
-            if mode == "all":
-                free = near & (lab != k)
-            else:
-                free = near & ((lab == -1) | ((lab == self.anchor) & (k != self.anchor)))
-                if mode in ("objects", "ordered") and k != self.anchor and object_band > 0:
-                    close = F.max_pool2d(mask, 2 * object_band + 1, stride=1, padding=object_band)[:, 0] > 0
-                    other = (lab >= 0) & (lab != k)
-                    if mode == "ordered":
-                        for j in sorted(j for j, behind in in_front if behind == k and j != self.anchor):
-                            other &= lab != j
-                    free |= close & other
+            free = near & ((lab == -1) | ((lab == self.anchor) & (k != self.anchor)))
+            if k != self.anchor and object_band > 0:
+                close = F.max_pool2d(mask, 2 * object_band + 1, stride=1, padding=object_band)[:, 0] > 0
+                other = (lab >= 0) & (lab != k)
+                for j in sorted(j for j, behind in in_front if behind == k and j != self.anchor):
+                    other &= lab != j
+                free |= close & other
             keep = free & self.present[k][:, None, None] & ~self.ignored.reshape(T, H, W)
             out.append(torch.nonzero(keep.reshape(-1))[:, 0])
         return out

@@ -35,6 +35,12 @@ log = logging.getLogger(__name__)
 
 #: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
 REPLAY_SIZE = 4096
+#: Per object and step, the free pixels of ``w_free``'s term and the silhouette pixels of
+#: ``w_edge``'s; per step, the strips of ``w_hidden_smooth``'s. Sampling budgets of a term, not
+#: its strength: the weight sets that.
+FREE_RAYS = 128
+EDGE_RAYS = 64
+HIDDEN_STRIPS = 32
 #: Pixels per strip of ``w_hidden_smooth``: the shortest odd strip that has a second difference
 #: on each side of its centre, so a strip reaching two pixels into an object still holds one
 #: visible anchor pixel per triple at the silhouette.
@@ -63,7 +69,7 @@ class Trainer:
         planes = anchor_plane_size(cfg.field, inputs)
         self.fields = [self._make_object_field(k, self.resolutions[k][0], planes if k == inputs.anchor_pos else 0)
                        for k in range(len(inputs.objects))]
-        self.net = ScaleNet(K - 1, cfg.scale_width, cfg.scale_layers, seed=cfg.seed).to(device) if K > 1 else None
+        self.net = ScaleNet(K - 1, seed=cfg.seed).to(device) if K > 1 else None
         self.net_opt = torch.optim.Adam(self.net.parameters(), lr=cfg.scale_lr) if self.net is not None else None
         self.schedule = build_schedule(cfg, K)
         self.total = self.schedule[-1].end if self.schedule else 0
@@ -81,7 +87,7 @@ class Trainer:
         self.positives = torch.zeros(0, max(K - 1, 1))
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
         self.bg = torch.tensor(cfg.background, device=device)
-        # (j, k): j in front of k by the last label pool; `free_space: ordered` stops carving k there
+        # (j, k): j in front of k by the last label pool; the free-space term stops carving j's pixels for k
         self.in_front: frozenset[tuple[int, int]] = frozenset()
         self.free = self._free_pixels()
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
@@ -96,7 +102,7 @@ class Trainer:
         return make_field(self.cfg.field, bbox, seed=self.cfg.seed + k, resolution=resolution, planes=planes).to(self.device)
 
     def _make_field_opt(self) -> None:
-        groups = [g for f in self.fields for g in f.param_groups(self.cfg.field.lr_grid, self.cfg.field.lr_net)]
+        groups = [g for f in self.fields for g in f.param_groups(self.cfg.field.lr_grid)]
         self.field_opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
     def state_dict(self) -> dict[str, Any]:
@@ -171,33 +177,32 @@ class Trainer:
         return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
 
     def _free_loss(self, k: int) -> torch.Tensor:
-        """Mean squared opacity of object k alone on ``free_rays`` of its free pixels (see
+        """Mean squared opacity of object k alone on :data:`FREE_RAYS` of its free pixels (see
         :meth:`SceneTensors.free_pixels`): keeps its field from bleeding past its silhouette,
         which would otherwise read as "k is behind the anchor" to the scale labels."""
         cfg, free = self.cfg, self.free[k]
         if cfg.w_free <= 0 or not len(free):
             return torch.zeros((), device=self.device)
-        return self._render_alone(k, free[self._randint(len(free), cfg.free_rays)]).acc.square().mean()
+        return self._render_alone(k, free[self._randint(len(free), FREE_RAYS)]).acc.square().mean()
 
     def _edge_loss(self, k: int) -> torch.Tensor:
-        """:func:`edge_excess` of object k alone on ``edge_rays`` of its silhouette pixels and their
+        """:func:`edge_excess` of object k alone on :data:`EDGE_RAYS` of its silhouette pixels and their
         inner neighbours (:meth:`SceneTensors.edge_pairs`)."""
-        cfg = self.cfg
         edge, inner = self.edges[k]
         if not len(edge):
             return torch.zeros((), device=self.device)
-        i = self._randint(len(edge), cfg.edge_rays)
+        i = self._randint(len(edge), EDGE_RAYS)
         out = self._render_alone(k, torch.cat([edge[i], inner[i]]))
         n = len(i)
-        return edge_excess(out.depth[:n], out.acc[:n], out.depth[n:], out.acc[n:], cfg.edge_slope)
+        return edge_excess(out.depth[:n], out.acc[:n], out.depth[n:], out.acc[n:])
 
     def _hidden_loss(self) -> torch.Tensor:
-        """:func:`disparity_curvature` of the anchor alone on ``hidden_strips`` strips across
+        """:func:`disparity_curvature` of the anchor alone on :data:`HIDDEN_STRIPS` strips across
         pixels where objects hide it (:meth:`SceneTensors.hidden_anchor_strips`)."""
         strips = self.hidden_strips
         if strips is None or not len(strips):
             return torch.zeros((), device=self.device)
-        strips = strips[self._randint(len(strips), self.cfg.hidden_strips)]
+        strips = strips[self._randint(len(strips), HIDDEN_STRIPS)]
         out = self._render_alone(self.st.anchor, strips.reshape(-1))
         return disparity_curvature(out.depth.reshape(strips.shape), out.acc.reshape(strips.shape))
 
@@ -321,17 +326,19 @@ class Trainer:
 
     def ensure_cache(self, phase: Phase) -> None:
         """Build the label pool at the start of a scale phase (rebuilt identically on resume);
-        with ``free_space: ordered`` its pairs' order then sets what the field phases carve."""
+        its pairs' order then sets which other objects' pixels the free-space term carves."""
         if self.cache_key != phase.start:
             self.cache = build_label_pool(self.st, self.fields, self.cfg, phase.start)
             self.cache_key = phase.start
-            if self.cfg.free_space == "ordered":
-                self._set_in_front(in_front_pairs(self.cache["constraints"].pairs))
+            self._set_in_front(in_front_pairs(self.cache["constraints"].pairs))
 
     def _free_pixels(self) -> list[torch.Tensor]:
-        """Each object's free pixels under the config and the pairs' order known so far."""
+        """Each object's free pixels under the config and the pairs' order known so far (none
+        without the free-space term)."""
         cfg = self.cfg
-        return self.st.free_pixels(cfg.free_space, cfg.free_band, cfg.free_band_objects, self.in_front)
+        if cfg.w_free <= 0:
+            return [torch.zeros(0, dtype=torch.long, device=self.device) for _ in range(self.st.K)]
+        return self.st.free_pixels(cfg.free_band, cfg.free_band_objects, self.in_front)
 
     def _set_in_front(self, pairs: frozenset[tuple[int, int]]) -> None:
         """Object pairs ``(j, k)`` with j in front of k; the free pixels follow them."""

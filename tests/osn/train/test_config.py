@@ -23,7 +23,7 @@ from tests.osn.train.common import small_config
 
 @pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
                                  {"valid_threshold": 1.5}, {"valid_threshold": 1.0}, {"rounds": "five"},
-                                 {"label_replay": "high"}, {"free_space": "walls"}, {"depth_robust": -1.0},
+                                 {"label_replay": "high"}, {"free_band": -1}, {"depth_robust": -1.0},
                                  {"depth_robust": "always"}])
 def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
     (key, value), = bad.items()
@@ -93,6 +93,35 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
         TrainConfig.from_yaml(path, run_config=True)
 
 
+def test_a_run_config_naming_the_options_that_became_constants_reads_at_their_values(tmp_path: Path) -> None:
+    """Sampling budgets, the scale network's and TensoRF's sizes and the free-space choice left
+    the config: a run's config.yaml at the values that train as today reads, another is refused."""
+    d = TrainConfig().to_dict()
+    old = {**d, "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128, "scale_width": 64,
+           "scale_layers": 4, "free_space": "ordered",
+           "field": {**d["field"], "density_components": 16, "appearance_components": 48, "app_dim": 27, "lr_net": 1e-3}}
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(old))
+    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
+    for key, value in [("edge_rays", 32), ("scale_width", 16), ("free_space", "all")]:
+        path.write_text(yaml.safe_dump({**old, key: value}))
+        with pytest.raises(ValueError, match=f"trained with {key}: {value!r}"):
+            TrainConfig.from_yaml(path, run_config=True)
+    path.write_text(yaml.safe_dump({**old, "field": {**old["field"], "app_dim": 12}}))
+    with pytest.raises(ValueError, match="field.app_dim: 12"):
+        TrainConfig.from_yaml(path, run_config=True)
+    # The free-space choices that carve as today: any where the term is off, and `anchor` (or
+    # `objects`) where no other object's pixel is free.
+    for extra in [{"free_space": "none", "w_free": 0.0}, {"free_space": "all", "w_free": 0.0},
+                  {"free_space": "anchor", "free_band_objects": 0}]:
+        path.write_text(yaml.safe_dump({**old, **extra}))
+        want = {k: v for k, v in extra.items() if k != "free_space"}
+        assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), **want)
+    path.write_text(yaml.safe_dump({**old, "free_space": "none"}))  # the term on, carving nothing
+    with pytest.raises(ValueError, match="free_space: 'none'"):
+        TrainConfig.from_yaml(path, run_config=True)
+
+
 def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_resolution(tmp_path: Path) -> None:
     d = TrainConfig().to_dict()
     del d["field"]["object_resolution"]
@@ -103,7 +132,7 @@ def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_reso
 
 
 @pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0},
-                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"app_dim": True},
+                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"hidden": True},
                                  {"object_resolution": -1}, {"object_resolution": "half"}, {"object_resolution": 2.5}])
 def test_field_config_rejects_impossible_values(bad: dict) -> None:
     (key, _), = bad.items()

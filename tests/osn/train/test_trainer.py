@@ -129,9 +129,10 @@ def test_label_pool_uses_the_configured_or_automatic_stride(tiny_dataset: Path) 
 
 
 def test_free_pixels_are_the_anchor_near_each_object(tiny_dataset: Path) -> None:
-    """``free_space: anchor``: an object's free pixels show the anchor (or nothing), lie within
-    ``free_band`` pixels of its mask, in frames where it is present; the anchor gets none."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(free_space="anchor"), torch.device("cpu"))
+    """With ``free_band_objects: 0`` an object's free pixels show the anchor (or nothing), lie
+    within ``free_band`` pixels of its mask, in frames where it is present; the anchor gets none.
+    Without the term (``w_free: 0``) no object has any."""
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(free_band_objects=0), torch.device("cpu"))
     st, band = tr.st, tr.cfg.free_band
     lab = st.labels.reshape(st.T, st.H, st.W)
     for k in range(st.K):
@@ -145,20 +146,19 @@ def test_free_pixels_are_the_anchor_near_each_object(tiny_dataset: Path) -> None
         for i in range(0, len(free), max(1, len(free) // 20)):  # a spread of them: the mask is near
             win = lab[t[i], max(0, y[i] - band) : y[i] + band + 1, max(0, x[i] - band) : x[i] + band + 1]
             assert (win == k).any()
-    assert all(len(f) == 0 for f in st.free_pixels("none", band))
-    with pytest.raises(ValueError, match="free_space"):
-        Trainer(oracle_inputs(tiny_dataset), _cfg(free_space="walls"), torch.device("cpu"))
+    off = Trainer(oracle_inputs(tiny_dataset), _cfg(w_free=0.0), torch.device("cpu"))
+    assert all(len(f) == 0 for f in off.free)
 
 
-def test_free_pixels_objects_mode_also_carves_other_objects_next_to_the_mask(tiny_dataset: Path) -> None:
-    """``free_space: objects``: what ``anchor`` gives, plus, for every object but the anchor, the
+def test_free_pixels_also_carve_other_objects_next_to_the_mask(tiny_dataset: Path) -> None:
+    """``free_band_objects > 0``: the anchor's pixels, plus, for every object but the anchor, the
     pixels of other objects within ``free_band_objects`` of its mask (a field filling the gap
     between a chair's legs covers the table seen through it); the anchor is never carved there."""
     st = SceneTensors(oracle_inputs(tiny_dataset), torch.device("cpu"))
     lab = st.labels.reshape(st.T, st.H, st.W)
-    anchor = st.free_pixels("anchor", 4)
+    anchor = st.free_pixels(4, 0)
     for ob in (1, 2):
-        objects = st.free_pixels("objects", 4, ob)
+        objects = st.free_pixels(4, ob)
         for k in range(st.K):
             base, more = set(anchor[k].tolist()), set(objects[k].tolist())
             assert base <= more
@@ -172,21 +172,19 @@ def test_free_pixels_objects_mode_also_carves_other_objects_next_to_the_mask(tin
             for i in range(len(extra)):  # every one within the band of the object's mask
                 win = lab[t[i], max(0, y[i] - ob) : y[i] + ob + 1, max(0, x[i] - ob) : x[i] + ob + 1]
                 assert (win == k).any()
-    wide = st.free_pixels("objects", 4, 2)
-    narrow = st.free_pixels("objects", 4, 1)
+    wide = st.free_pixels(4, 2)
+    narrow = st.free_pixels(4, 1)
     assert sum(map(len, wide)) > sum(map(len, narrow))
 
 
-def test_free_pixels_ordered_mode_spares_the_pixels_of_an_object_in_front(tiny_dataset: Path) -> None:
-    """``free_space: ordered``: ``objects`` while no pair's order is known; once ``(j, k)`` says j
-    is in front of k, j's pixels leave k's free set (k may be hidden there) and nothing else
-    changes; the anchor's pixels stay carved whatever a pair says."""
+def test_free_pixels_spare_the_pixels_of_an_object_in_front(tiny_dataset: Path) -> None:
+    """Once ``(j, k)`` says j is in front of k, j's pixels leave k's free set (k may be hidden
+    there) and nothing else changes; the anchor's pixels stay carved whatever a pair says."""
     st = SceneTensors(oracle_inputs(tiny_dataset), torch.device("cpu"))
     lab = st.labels.reshape(-1)
-    objects = st.free_pixels("objects", 4, 1)
-    assert all(torch.equal(a, b) for a, b in zip(st.free_pixels("ordered", 4, 1), objects))
+    objects = st.free_pixels(4, 1)
     j, k = [i for i in range(st.K) if i != st.anchor]
-    ordered = st.free_pixels("ordered", 4, 1, frozenset({(j, k), (st.anchor, j)}))
+    ordered = st.free_pixels(4, 1, frozenset({(j, k), (st.anchor, j)}))
     assert torch.equal(ordered[j], objects[j]) and torch.equal(ordered[st.anchor], objects[st.anchor])
     assert torch.equal(ordered[k], objects[k][lab[objects[k]] != j])
     assert len(ordered[k]) < len(objects[k])  # the tiny scene's two objects meet in some frame
@@ -197,7 +195,7 @@ def test_ordered_free_space_follows_the_label_pool_and_resumes(tiny_dataset: Pat
     checkpoint brings both back."""
     from osn.model.depth_order import in_front_pairs
 
-    cfg = _cfg(free_space="ordered", stage1_iters=200)  # after 30 steps no ray is contested yet
+    cfg = _cfg(stage1_iters=200)  # after 30 steps no ray is contested yet
     tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
     objects = [f.clone() for f in tr.free]
     assert tr.in_front == frozenset()
@@ -207,7 +205,7 @@ def test_ordered_free_space_follows_the_label_pool_and_resumes(tiny_dataset: Pat
     assert tr.in_front == in_front_pairs(tr.cache["constraints"].pairs)
     behind = [k for j, k in tr.in_front if tr.st.anchor not in (j, k)]
     assert behind  # the tiny scene's two objects: one is in front of the other (measured: 1 of 2)
-    expected = tr.st.free_pixels("ordered", cfg.free_band, cfg.free_band_objects, tr.in_front)
+    expected = tr.st.free_pixels(cfg.free_band, cfg.free_band_objects, tr.in_front)
     assert all(torch.equal(a, b) for a, b in zip(tr.free, expected))
     assert all(len(tr.free[k]) < len(objects[k]) for k in behind)
     back = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
@@ -225,8 +223,9 @@ def test_free_space_loss_stops_objects_bleeding_past_their_silhouette(tiny_datas
         one = torch.ones(tr.st.K)
         accs = []
         with torch.no_grad():
+            free = tr.st.free_pixels(tr.cfg.free_band, tr.cfg.free_band_objects)  # the same pixels either way
             for k in range(tr.st.K):
-                f = tr.free[k]
+                f = free[k]
                 if k == tr.st.anchor or not len(f):
                     continue
                 HW = tr.st.H * tr.st.W
