@@ -22,7 +22,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples",
              "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
-                 "free_band", "free_band_objects", "label_rays", "label_stride")
+                 "free_band", "free_band_objects", "label_stride")
 _FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
@@ -35,7 +35,7 @@ def _auto_or(rule: Rule) -> Rule:
 MAX_SAMPLES_PER_RAY = 4096
 MAX_RAYS = 1 << 20
 MAX_POINTS = 1 << 24
-_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays", "label_rays")
+_SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays")
 _SIZED_BY_POINTS = ("scale_samples", "candidates", "eval_pixels", "iou_samples")
 
 
@@ -287,10 +287,6 @@ class TrainConfig:
     scale_samples: int = 1024
     """paper (Sec. 3.3, Eq. 11: the H sampled scale combinations): Normalised scale vectors drawn
     and labelled per scale step. Unit: scale vectors per step. Neutral: none (at least 1)."""
-    label_rays: int = 0
-    """addition (not measured): ``> 0``: a scale step scores its samples against this many random
-    rays of the label pool; 0: against the whole pool. Unit: rays per scale step. Neutral: 0 (the
-    whole pool, the default)."""
     label_replay: float = 0.5
     """addition (not measured): The share of each scale step's samples drawn jittered around scale
     vectors labelled valid earlier instead of uniformly; labels are always recomputed, so this only

@@ -22,7 +22,8 @@ REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0
                                    "uncertain_acc": "coverage_threshold",  # a name: that option's value
                                    # sampling budgets and the scale network's size, constants now
                                    "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128,
-                                   "scale_width": 64, "scale_layers": 4}
+                                   "scale_width": 64, "scale_layers": 4,
+                                   "label_rays": 0}  # every scale step scores the whole pool
 
 
 def _free_space_today(d: dict[str, Any]) -> str:

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from osn.model.fields import Field, make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.depth_order import OrderConstraints, in_front_pairs, order_constraints, trimmed_labels
+from osn.model.depth_order import in_front_pairs, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.depth_noise import depth_consistency
 from osn.preprocess.inputs import SceneInputs
@@ -346,15 +346,6 @@ class Trainer:
             self.in_front = pairs
             self.free = self._free_pixels()
 
-    def _constraints(self) -> OrderConstraints:
-        """The scale phase's depth-order constraints: every contested pool ray, or a random
-        ``label_rays`` of them per step when that is set (> 0)."""
-        c, n = self.cache, len(self.cache["flat"])
-        if self.cfg.label_rays <= 0 or self.cfg.label_rays >= n:
-            return c["constraints"]
-        r = self._randint(n, self.cfg.label_rays)
-        return order_constraints(c["depth"][r], c["covered"][r], c["gt"][r], self.cfg.pair_minority)
-
     def _scale_samples(self) -> torch.Tensor:
         """Normalised free scales ``(scale_samples, K-1)`` for one scale step: uniform in the
         box, plus a share ``label_replay`` jittered around scale vectors labelled valid earlier
@@ -401,7 +392,7 @@ class Trainer:
         st = self.st
         s = self._scale_samples()
         sbar = full_sbar(s, st.ranges, st.anchor)
-        cons = self._constraints()
+        cons = self.cache["constraints"]
         # Labels relative to the best sample, per object pair (depth_order.trimmed_labels): learned
         # depths have floaters that make some rays wrong for every scale vector. All samples are
         # scored on the same rays, so "within tolerance of the best" compares like with like.
