@@ -44,7 +44,8 @@ from osn.preprocess.oracle import oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig, pipeline_config
 from osn.preprocess.video import preprocess_dataset, training_inputs
 from osn.sample.configurations import Samples, sample_configurations
-from osn.train import read_metrics
+from osn.train import TrainConfig, read_metrics
+from osn.train.run_config import upgrade_run_config
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,28 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[f"{prefix}{k}"] = v
     return out
+
+
+def _nest(flat: dict[str, Any]) -> dict[str, Any]:
+    """The inverse of :func:`_flat`."""
+    out: dict[str, Any] = {}
+    for key, v in flat.items():
+        *parents, last = key.split(".")
+        node = out
+        for k in parents:
+            node = node.setdefault(k, {})
+        node[last] = v
+    return out
+
+
+def recorded_train_options(old: dict[str, Any]) -> dict[str, Any]:
+    """The train stage's options as an older version recorded them, read as today's
+    (:func:`osn.train.run_config.upgrade_run_config`: options added since at the value the run
+    trained with, removed ones dropped where they held today's value); ``ValueError`` where not."""
+    train = {k[len("train."):]: v for k, v in old.items() if k.startswith("train.")}
+    today = upgrade_run_config(_nest(train), TrainConfig)
+    return {**{k: v for k, v in old.items() if not k.startswith("train.")},
+            **{f"train.{k}": v for k, v in _flat(today).items()}}
 
 
 def demo_command(args: argparse.Namespace) -> str:
@@ -349,7 +372,8 @@ def run_demo(args: argparse.Namespace) -> dict[str, Any]:
         Stage("ground-truth", "benchgen: render every configuration's test views and verify them", start_ground_truth,
               bench, background=True),
         Stage("train", f"train per-object fields and the scale network on {args.inputs_from} inputs",
-              lambda: stage_train(args, p, train_cfg, jobs.get("ground-truth")), {"inputs": args.inputs_from, **train_options}),
+              lambda: stage_train(args, p, train_cfg, jobs.get("ground-truth")), {"inputs": args.inputs_from, **train_options},
+              recorded=recorded_train_options),
         Stage("sample", f"draw {args.n} valid configurations", partial(stage_sample, args, p),
               {"n": args.n, "threshold": args.threshold, "seed": args.seed}),
         Stage("evaluate", "best-of-N evaluation against every ground truth", partial(stage_evaluate, args, p),

@@ -51,7 +51,9 @@ class Job(Protocol):
 class Stage:
     """A named step; ``run()`` returns a JSON-able summary stored with its time, or, for a
     ``background`` stage, starts the work and returns its :class:`Job`. ``needs``: background
-    stages that must be done before this one starts."""
+    stages that must be done before this one starts. ``recorded``: how options an older version
+    recorded read today (``ValueError`` where they cannot), so a renamed or removed option that
+    held the value that works as today does not refuse a finished stage."""
 
     name: str
     description: str
@@ -59,6 +61,7 @@ class Stage:
     options: dict[str, Any] = field(default_factory=dict)
     background: bool = False
     needs: tuple[str, ...] = ()
+    recorded: Callable[[dict[str, Any]], dict[str, Any]] | None = None
 
 
 @dataclass
@@ -147,8 +150,14 @@ def _run_one(st: Stage, i: int, n: int, done_dir: Path, records: dict[str, dict]
     marker, started = done_dir / f"{st.name}.json", done_dir / f"{st.name}.started.json"
     options = json.loads(json.dumps(st.options))  # as stored: tuples become lists
     before = json.loads(started.read_text()) if started.exists() else None
-    if before is not None and before.get("options", {}) != options:
-        old = before.get("options", {})
+    old = before.get("options", {}) if before is not None else options
+    if before is not None and st.recorded is not None and old != options:
+        try:
+            old = json.loads(json.dumps(st.recorded(old)))
+        except ValueError as e:
+            raise UserError(f"{done_dir.parent}: stage {st.name!r} was run by an older version ({e}); "
+                            f"use another --work, or remove {done_dir.parent} to start over") from None
+    if old != options:
         diff = ", ".join(f"{k} {old.get(k)!r} -> {options.get(k)!r}" for k in sorted(set(old) | set(options))
                          if old.get(k) != options.get(k))
         raise UserError(f"{done_dir.parent}: stage {st.name!r} was run with other options ({diff}); "

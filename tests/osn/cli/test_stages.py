@@ -49,6 +49,33 @@ def _python(code: str) -> list[str]:
     return [sys.executable, "-c", code]
 
 
+def test_a_train_stage_recorded_with_options_since_removed_is_done_where_they_held_todays_values(tmp_path: Path) -> None:
+    """A demo work directory whose train stage recorded options that are constants now (at their
+    value) stays done; one that trained with another value is refused, naming the option."""
+    from osn.cli.demo import _flat, recorded_train_options
+    from osn.train import TrainConfig
+
+    today = {"inputs": "oracle", **{f"train.{k}": v for k, v in _flat(TrainConfig().to_dict()).items()}}
+    old = {**today, "train.free_space": "ordered", "train.edge_rays": 64, "train.field.lr_net": 0.001}
+    calls: list[str] = []
+
+    def train() -> dict:
+        calls.append("train")
+        return {}
+
+    run_stages([Stage("train", "older version", train, old)], tmp_path, lambda _: None)
+    lines: list[str] = []
+    run_stages([Stage("train", "today", train, today, recorded=recorded_train_options)], tmp_path, lines.append)
+    assert calls == ["train"] and "already done" in lines[-1]
+    with pytest.raises(UserError, match=r"stage 'train' was run with other options \(train.edge_rays 64 -> None, "):
+        run_stages([Stage("train", "no reading", train, today)], tmp_path, lines.append)
+
+    other = tmp_path / "other"
+    run_stages([Stage("train", "older version", train, {**old, "train.edge_rays": 32})], other, lambda _: None)
+    with pytest.raises(UserError, match=r"stage 'train' was run by an older version \(trained with edge_rays: 32"):
+        run_stages([Stage("train", "today", train, today, recorded=recorded_train_options)], other, lines.append)
+
+
 def test_background_stage_runs_beside_the_next_and_is_waited_for_where_needed(tmp_path: Path) -> None:
     """A real child process: the stage after it runs while it sleeps, the stage that needs it
     starts only once it has written its file, its time is its own, and it runs at the lowest
