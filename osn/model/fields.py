@@ -387,15 +387,15 @@ class FieldConfig:
     object_resolution: int | str = "auto"
     """addition (experiments/2026-11-27-object-resolution-anchor-planes.md): Final voxels per axis
     of every object's field but the anchor's (at most ``resolution``), grown on the anchor's
-    schedule scaled to it. ``auto`` (:func:`osn.train.config.object_resolutions`): on noisy inputs
+    schedule scaled to it. ``auto`` (:func:`osn.train.auto.object_resolutions`): on noisy inputs
     (:mod:`osn.preprocess.depth_noise`; SfM's) as many as the object's box spans pixels in its
-    training frames (:func:`osn.train.config.footprint_resolution`), ``resolution`` on exact ones.
+    training frames (:func:`osn.train.auto.footprint_resolution`), ``resolution`` on exact ones.
     Unit: voxels per axis. Neutral: 0 (``resolution``)."""
     anchor_planes: int | str = "auto"
     """addition (experiments/2026-11-27-object-resolution-anchor-planes.md,
     experiments/2026-11-28-one-rule-room-options.md): Texels per side of three colour planes added
     to the anchor's RGB (:func:`triplane`; ``dense`` only, TensoRF's own planes hold its colour).
-    ``auto`` (:func:`osn.train.config.anchor_plane_size`): about one texel per pixel where the
+    ``auto`` (:func:`osn.train.auto.anchor_plane_size`): about one texel per pixel where the
     anchor's box spans more pixels than its grid has voxels, else none. Unit: texels per side.
     Neutral: 0 (the grid's colour alone)."""
 

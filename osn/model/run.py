@@ -224,6 +224,6 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> Trained
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"{ckpt_path}: does not match this toolkit's fields or scale network ({first})") from None
-    from osn.train.config import checkpoint_anchor_guide_samples  # osn.train imports this module
+    from osn.train.auto import checkpoint_anchor_guide_samples  # osn.train imports this module
     return TrainedRun(run, inputs, cfg, fields, net, dev, int(ckpt.get("iteration", 0)), float(ckpt.get("elapsed", 0.0)),
                       checkpoint_anchor_guide_samples(ckpt, inputs.source))

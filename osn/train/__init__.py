@@ -20,7 +20,8 @@ dataset and calls :func:`train`.
 """
 
 from osn.train.checkpoint import TrainingDiverged, read_metrics
-from osn.train.config import TrainConfig, label_stride
+from osn.train.auto import label_stride
+from osn.train.config import TrainConfig
 from osn.train.loop import train
 from osn.train.monitor import TrainingMonitor
 from osn.train.schedule import Phase, build_schedule

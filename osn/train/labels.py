@@ -17,7 +17,8 @@ import torch
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
 from osn.model.volume import render_by_hits
-from osn.train.config import TrainConfig, label_stride
+from osn.train.auto import label_stride
+from osn.train.config import TrainConfig
 from osn.train.tensors import SceneTensors
 
 log = logging.getLogger(__name__)

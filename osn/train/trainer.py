@@ -24,8 +24,9 @@ from osn.model.depth_order import in_front_pairs, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.depth_noise import depth_consistency
 from osn.preprocess.inputs import SceneInputs
-from osn.train.config import (TrainConfig, anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
-                              resolve_anchor_guide_samples, resolve_depth_robust, resolve_w_edge)
+from osn.train.auto import (anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
+                            resolve_anchor_guide_samples, resolve_depth_robust, resolve_w_edge)
+from osn.train.config import TrainConfig
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from osn.train.schedule import Phase, build_schedule

@@ -11,7 +11,7 @@ import yaml
 
 from osn.model.fields import FieldConfig
 from osn.train import TrainConfig
-from osn.train.config import (
+from osn.train.auto import (
     MIN_OBJECT_RESOLUTION,
     DEPTH_ROBUST_NOISY,
     footprint_resolution,

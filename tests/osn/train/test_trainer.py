@@ -346,7 +346,7 @@ def test_anchor_guide_trains_and_renders_the_anchor_alone(tiny_dataset: Path, tm
     assert np.isfinite(guided["rgb"]).all() and np.isfinite(guided["acc"]).all()
     # A checkpoint written before the resolved value was stored: ``auto`` as it was then (0 on the
     # oracle's inputs), and a run trained before the option: even.
-    from osn.train.config import ANCHOR_GUIDE_SAMPLES, checkpoint_anchor_guide_samples, resolve_anchor_guide_samples
+    from osn.train.auto import ANCHOR_GUIDE_SAMPLES, checkpoint_anchor_guide_samples, resolve_anchor_guide_samples
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     assert ckpt["anchor_guide"] == 16
     del ckpt["anchor_guide"]
@@ -523,7 +523,7 @@ def test_edge_term_is_reported_when_on_and_auto_follows_the_measured_noise(tiny_
     other options that correct for noisy inputs read whether the depths agree across frames
     (:mod:`osn.preprocess.depth_noise`), never the source label: exact inputs labelled SfM train
     as the oracle's do, the oracle's with phantom depths as SfM's do."""
-    from osn.train.config import DEPTH_ROBUST_NOISY, W_EDGE_NOISY, resolve_w_edge
+    from osn.train.auto import DEPTH_ROBUST_NOISY, W_EDGE_NOISY, resolve_w_edge
 
     tr = Trainer(oracle_inputs(tiny_dataset), _cfg(w_edge=1.0), torch.device("cpu"))
     out = tr.step_stage1()
@@ -569,7 +569,7 @@ def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tin
     from osn.model.fields import FieldConfig
     from osn.model.run import load_run
     from osn.preprocess.depth_noise import depth_consistency
-    from osn.train.config import MIN_ANCHOR_PLANES, anchor_pixels, anchor_plane_size, object_resolutions
+    from osn.train.auto import MIN_ANCHOR_PLANES, anchor_pixels, anchor_plane_size, object_resolutions
     from osn.train.loop import train
 
     oracle = oracle_inputs(tiny_dataset)
