@@ -27,9 +27,9 @@ from typing import Any
 
 import yaml
 from bench_heldout import FIELDS, _mean_std, _measured, run_one, seed_work
-from results_json import table, write_results
+from results_json import table
 
-from benchutil import add_executor_args, print_command, print_tables, run_parallel
+from benchutil import add_executor_args, finish_parallel, print_command, run_parallel
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = ROOT / "configs" / "osn-cpu.yaml"
@@ -171,16 +171,10 @@ def main() -> int:
         ray.init(address=args.address)
     for (name, t), r in run_parallel(run_one, [((name, t), a) for name, t, _, a in jobs], args.jobs, args.executor, threads):
         report(name, t, r)
-    ts = ablation_tables(runs, names)
-    print_tables(ts)
-    write_results(args.out, "ablation", "python " + " ".join(sys.argv), ts,
-                  {"split": "development", "seeds": seeds, "train_seeds": train_seeds, "source": args.source,
-                   "base": args.base, "families": {f: {"why": FAMILIES[f][0], "off": FAMILIES[f][1]} for f in families}, "runs": runs,
-                   "wall_seconds": time.perf_counter() - t0, "jobs": args.jobs,
-                   "load_average_at_end": os.getloadavg()[0]}, ROOT)
-    print(f"wrote {args.out}")
-    return 1 if any("error" in r for r in runs) else 0
-
+    return finish_parallel(args.out, "ablation", ablation_tables(runs, names),
+                           {"split": "development", "seeds": seeds, "train_seeds": train_seeds, "source": args.source,
+                            "base": args.base, "families": {f: {"why": FAMILIES[f][0], "off": FAMILIES[f][1]} for f in families}},
+                           t0, args.jobs, ROOT, runs)
 
 if __name__ == "__main__":
     sys.exit(main())

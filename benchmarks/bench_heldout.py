@@ -33,9 +33,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from results_json import table, write_results
+from results_json import table
 
-from benchutil import add_executor_args, print_command, print_tables, run_parallel
+from benchutil import add_executor_args, finish_parallel, print_command, run_parallel
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("colmap", "oracle")
@@ -277,15 +277,8 @@ def main() -> int:
     for seed, err in failed.items():
         for src in sources:
             report({"seed": seed, "source": src, "error": err, "seconds": 0.0})
-    ts = tables(runs, args.label)
-    print_tables(ts)
-    write_results(args.out, "heldout", "python " + " ".join(sys.argv), ts,
-                  {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config, "runs": runs,
-                   "wall_seconds": time.perf_counter() - t0, "jobs": args.jobs,
-                   "load_average_at_end": os.getloadavg()[0]}, ROOT)
-    print(f"wrote {args.out}")
-    return 1 if any("error" in r for r in runs) else 0
-
+    return finish_parallel(args.out, "heldout", tables(runs, args.label),
+                           {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config}, t0, args.jobs, ROOT, runs)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import os
 import shlex
 import sys
+import time
+from pathlib import Path
+from typing import Any
 
 
 def print_command() -> None:
@@ -112,3 +116,18 @@ def render_bench_inputs(doc: str):
     print_command()
     run = load_run(args.run)
     return run, load_truth(args.dataset, args.views), sample_configurations(run, args.configs, 0.5, 0).sbar
+
+
+def finish_parallel(out: Path, benchmark: str, tables: dict, data: dict[str, Any], t0: float, jobs: int, root: Path,
+                    runs: list[dict]) -> int:
+    """End a benchmark whose runs went through :func:`run_parallel`: print its tables, write the
+    results JSON with its wall time, ``jobs`` and the load at the end (the machine was shared),
+    and return the exit status (1 when a run failed)."""
+    from results_json import write_results
+
+    print_tables(tables)
+    write_results(out, benchmark, "python " + " ".join(sys.argv), tables,
+                  {**data, "runs": runs, "wall_seconds": time.perf_counter() - t0, "jobs": jobs,
+                   "load_average_at_end": os.getloadavg()[0]}, root)
+    print(f"wrote {out}")
+    return 1 if any("error" in r for r in runs) else 0
