@@ -223,10 +223,12 @@ class TrainConfig:
     """paper (Sec. 3.3, Eq. 11: the H sampled scale combinations): Normalised scale vectors drawn
     and labelled per scale step. Unit: scale vectors per step. Neutral: none (at least 1)."""
     label_replay: float = 0.5
-    """addition (not measured): The share of each scale step's samples drawn jittered around scale
-    vectors labelled valid earlier instead of uniformly; labels are always recomputed, so this only
-    spends samples near the boundary. Unit: fraction of ``scale_samples``, in [0, 1]. Neutral: 0
-    (uniform samples, as the paper's)."""
+    """addition (experiments/2026-11-29-option-count-final-phase-single-options.md): The share of
+    each scale step's samples drawn jittered around scale vectors labelled valid earlier instead of
+    uniformly. Labels are always recomputed, but a sample's label is relative to the step's best
+    sample (``label_trim``): without valid samples in the step the best is itself far from valid
+    and the learned set comes out many times too large or empty. Unit: fraction of
+    ``scale_samples``, in [0, 1]. Neutral: 0 (uniform samples, as the paper's)."""
     label_samples: int = 24
     """paper (Sec. 3.3, Eq. 17: the M points of each object's independent depth rendering):
     Samples per ray of the label pool's renders, each object alone. Unit: samples per object and
