@@ -16,14 +16,6 @@ from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS
 #: term off); :func:`upgrade_run_config` fills them in.
 ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
                                "w_hidden_smooth": 0.0}
-#: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
-#: that trains as today: :func:`upgrade_run_config` drops them at that value and refuses any other.
-REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
-                                   "uncertain_acc": "coverage_threshold",  # a name: that option's value
-                                   # sampling budgets and the scale network's size, constants now
-                                   "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128,
-                                   "scale_width": 64, "scale_layers": 4,
-                                   "label_rays": 0}  # every scale step scores the whole pool
 
 
 def _free_space_today(d: dict[str, Any]) -> str:
@@ -34,6 +26,18 @@ def _free_space_today(d: dict[str, Any]) -> str:
     if d.get("w_free", 1.0) == 0 or (old in ("anchor", "objects") and d.get("free_band_objects", 1) == 0):
         return old
     return "ordered"
+
+
+#: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
+#: that trains as today (a name: that option's value; a function: of the whole config):
+#: :func:`upgrade_run_config` drops them at that value and refuses any other.
+REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
+                                   "uncertain_acc": "coverage_threshold",
+                                   # sampling budgets and the scale network's size, constants now
+                                   "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128,
+                                   "scale_width": 64, "scale_layers": 4,
+                                   "label_rays": 0,  # every scale step scores the whole pool
+                                   "free_space": _free_space_today}
 
 
 #: Options that took ``auto`` (resolved by the inputs' source) and now take one number: what
@@ -53,9 +57,9 @@ def upgrade_run_config(d: dict[str, Any], defaults: Any) -> dict[str, Any]:
                          + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
                          + ": write the number into the file to resume or compare the run")
     field = d.get("field") if isinstance(d.get("field"), dict) else None
-    # Each removed option's value today (a name: that option's value in this config).
-    today = {k: d.get(n, getattr(defaults, n)) if isinstance(n, str) else n for k, n in REMOVED_OPTIONS.items()}
-    today["free_space"] = _free_space_today(d)
+    # Each removed option's value today in this config.
+    today = {k: n(d) if callable(n) else d.get(n, getattr(defaults, n)) if isinstance(n, str) else n
+             for k, n in REMOVED_OPTIONS.items()}
     today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
     named = {**d, **{f"field.{k}": v for k, v in (field or {}).items()}}
     if gone := [k for k, v in named.items() if k in today and v != today[k]]:
