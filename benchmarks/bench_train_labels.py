@@ -5,7 +5,7 @@
 ``RUN`` is an ``osn train`` run directory (config, inputs, dataset with ``valid_region.json``);
 ``CHECKPOINT`` a checkpoint of it whose fields are to be labelled (for example a copy of
 ``checkpoint.pt`` taken after stage 1). ``key=value`` override the run's training config (label
-pool options such as ``coverage_threshold``, ``label_stride``,
+pool options such as ``label_stride``, ``label_trim``,
 ``final_label_trim``). The fields are labelled as the final scale phase labels
 them. Prints the pool size, per object pair the bound its rays set (trimmed by
 ``final_label_trim``, in dataset scales) next to the exact one, the violations of the

@@ -198,8 +198,10 @@ def render_options(root: Path = REPO, base: Path | None = None) -> str:
     lines = ["*Written by `scripts/docs_generate.py` from the docstring under each option in "
              "`osn/train/config.py` and `osn/model/fields.py`.*", "",
              "| option | default | category | what it does |", "|---|---|---|---|"]
+    counts = {"paper": 0, "addition": 0, "infrastructure": 0}
     for name, o in all_options(root):
         m = CATEGORY.match(o.doc.strip())
+        counts["infrastructure" if m["infra"] else m["kind"]] += 1
         if m["infra"]:
             category = "infrastructure"
         elif m["kind"] == "paper" or m["cite"].strip() == NOT_MEASURED:
@@ -210,6 +212,8 @@ def render_options(root: Path = REPO, base: Path | None = None) -> str:
             category = f"addition ({', '.join(links)})"
         default = f"`{_markdown(o.default)}`" if o.default else ""
         lines.append(f"| `{name}` | {default} | {category} | {_markdown(m['text'], o.constants)} |")
+    lines[1:1] = ["", f"{sum(counts.values())} options: {counts['paper']} of the paper, {counts['addition']} additions, "
+                  f"{counts['infrastructure']} infrastructure."]
     return "\n".join(lines) + "\n"
 
 

@@ -44,7 +44,7 @@ from osn.preprocess.oracle import oracle_inputs
 from osn.preprocess.sfm import PreprocessConfig, pipeline_config
 from osn.preprocess.video import preprocess_dataset, training_inputs
 from osn.sample.configurations import Samples, sample_configurations
-from osn.train import TrainConfig, read_metrics
+from osn.train import read_metrics
 from osn.train.run_config import upgrade_run_config
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ def recorded_train_options(old: dict[str, Any]) -> dict[str, Any]:
     (:func:`osn.train.run_config.upgrade_run_config`: options added since at the value the run
     trained with, removed ones dropped where they held today's value); ``ValueError`` where not."""
     train = {k[len("train."):]: v for k, v in old.items() if k.startswith("train.")}
-    today = upgrade_run_config(_nest(train), TrainConfig)
+    today = upgrade_run_config(_nest(train))
     return {**{k: v for k, v in old.items() if not k.startswith("train.")},
             **{f"train.{k}": v for k, v in _flat(today).items()}}
 

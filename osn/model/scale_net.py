@@ -20,8 +20,11 @@ log = logging.getLogger(__name__)
 
 #: Score above which a configuration belongs to the learned valid set (the classifier's decision
 #: boundary): used by sampling, the valid-set accuracy and the export. Training picks its stage-2
-#: configurations with the stricter ``TrainConfig.valid_threshold``.
+#: configurations with the stricter :data:`FIELD_STEP_THRESHOLD`.
 VALID_THRESHOLD = 0.5
+#: Score a field step's scale vector must exceed (the paper, Sec. 3.3 below Eq. 4: "above 0.95");
+#: when no candidate does, the best one is used and counted (``Trainer.fallbacks``).
+FIELD_STEP_THRESHOLD = 0.95
 
 
 class NonFiniteScores(ValueError):

@@ -17,12 +17,11 @@ from osn.model.fields import FieldConfig
 from osn.train.run_config import upgrade_run_config
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples",
-             "label_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
+_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "free_band", "free_band_objects", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "coverage_threshold", "scale_lr_final")
+_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
     """``auto`` (resolved by a measured property of the inputs) or a value ``rule`` accepts."""
@@ -55,7 +54,7 @@ def _device() -> Rule:
 _RULES: dict[str, Rule] = {
     "seed": integer(0),
     "field": Rule(lambda v: isinstance(v, FieldConfig), "a field mapping"),
-    **{name: number(0.0) for name in ("w_rgb", "w_depth", "w_seg", "w_opacity", "w_free")},
+    **{name: number(0.0) for name in ("w_depth", "w_seg", "w_opacity", "w_free")},
     "skip_occluded": number(0.0, 1.0, hi_open=True),
     "scale_lr": number(0.0, lo_open=True, what="a positive learning rate"),
     "background": _rgb(),
@@ -71,11 +70,9 @@ _RULES: dict[str, Rule] = {
     **{name: integer(1, MAX_RAYS) for name in _SIZED_BY_RAYS if name in _POSITIVE},
     **{name: integer(0, MAX_RAYS) for name in _SIZED_BY_RAYS if name in _NON_NEGATIVE},
     **{name: integer(1, MAX_POINTS) for name in _SIZED_BY_POINTS},
-    **{name: integer(1, MAX_SAMPLES_PER_RAY) for name in ("samples", "label_samples")},
+    "samples": integer(1, MAX_SAMPLES_PER_RAY),
     **{name: integer(0) for name in _NON_NEGATIVE},
     **{name: number(0.0, 1.0) for name in _FRACTIONS},
-    # Field steps need scores above it: at 1 no candidate ever passes (sigmoid < 1).
-    "valid_threshold": number(0.0, 1.0, hi_open=True),
 }
 
 
@@ -143,14 +140,11 @@ class TrainConfig:
     this; a render evaluates only the others with gradients and colour, which changes a ray's
     opacity by less than this. A shortcut for speed. Unit: transmittance, in [0, 1). Neutral: 0
     (every sample evaluated)."""
-    w_rgb: float = 1.0
-    """paper (Sec. 3.3, Eq. 2 and Eq. 8; appendix "Details of the Joint Optimization", Loss
-    Weights): Weight of the squared RGB error, alone on an object's pixels and in the composite.
-    Unit: loss weight. Neutral: 0 (no RGB loss)."""
     w_depth: float = 1.0
     """paper (Sec. 3.3, Eq. 2 and Eq. 9; appendix "Details of the Joint Optimization", Loss
     Weights): Weight of the sparse-depth loss, alone and in the composite (there compared in the
-    object's own unit). Unit: loss weight. Neutral: 0 (no depth loss)."""
+    object's own unit). Every loss weight is relative to the squared RGB error's, 1 as in the paper
+    (not an option). Unit: loss weight. Neutral: 0 (no depth loss)."""
     depth_robust: float | str = "auto"
     """addition (experiments/2026-11-26-sfm-phantom-depths-robust-depth-loss.md): The sparse-depth
     loss's form: 0 the squared error, ``k > 0`` a Cauchy loss at ``k`` times the batch's median
@@ -229,10 +223,6 @@ class TrainConfig:
     sample (``label_trim``): without valid samples in the step the best is itself far from valid
     and the learned set comes out many times too large or empty. Unit: fraction of
     ``scale_samples``, in [0, 1]. Neutral: 0 (uniform samples, as the paper's)."""
-    label_samples: int = 24
-    """paper (Sec. 3.3, Eq. 17: the M points of each object's independent depth rendering):
-    Samples per ray of the label pool's renders, each object alone. Unit: samples per object and
-    ray. Neutral: none (at least 1)."""
     label_trim: float = 0.01
     """addition (experiments/2026-11-24-measurements-two-cores.md,
     experiments/2026-11-24-what-limited-valid-set-iou.md): In the rounds' scale phases a sample is
@@ -254,19 +244,10 @@ class TrainConfig:
     axis; 0 picks the stride that keeps about :data:`AUTO_LABEL_SIDE` pixels along the longer
     image side (:func:`osn.train.auto.label_stride`), which bounds the pool's render cost. Unit:
     pixels. Neutral: 1 (every pixel)."""
-    coverage_threshold: float = 0.9
-    """paper (Sec. 3.3, Eq. 16-18: the objects whose depths the soft Z-buffer orders on a ray; the
-    paper names no threshold): An object covers a label-pool ray when its opacity alone exceeds
-    this; a pool ray needs its labelled object and another one covering it. Unit: opacity, in
-    [0, 1]. Neutral: none."""
-    valid_threshold: float = 0.95
-    """paper (Sec. 3.3, below Eq. 4: a score above 0.95): A field step's scale vector must score
-    above this; when none of ``candidates`` does, the best one is used and counted in
-    ``fallbacks``. Unit: validity score, in [0, 1). Neutral: none."""
     candidates: int = 4096
     """paper (Sec. 3.3, below Eq. 4: resample until the score passes the threshold): Scale vectors
-    drawn per field step to find one above ``valid_threshold``. Unit: scale vectors per step.
-    Neutral: none (at least 1)."""
+    drawn per field step to find one above :data:`osn.model.scale_net.FIELD_STEP_THRESHOLD`.
+    Unit: scale vectors per step. Neutral: none (at least 1)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """infrastructure: Colour a ray gets where no object is opaque. Unit: RGB, each in [0, 1].
     Neutral: none."""
@@ -307,7 +288,7 @@ class TrainConfig:
         try:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
-                d = upgrade_run_config(d, cls)
+                d = upgrade_run_config(d)
             return cls.from_dict(d)
         except (ValueError, TypeError, yaml.YAMLError) as e:
             raise ValueError(f"{path}: {e}") from None

@@ -23,6 +23,13 @@ from osn.train.tensors import SceneTensors
 
 log = logging.getLogger(__name__)
 
+#: Samples per ray of the label pool's renders, each object alone (the paper's M points of Eq. 17);
+#: every config used this value (docs/training.md, "What is not an option").
+LABEL_SAMPLES = 24
+#: An object covers a label-pool ray when its opacity alone exceeds this (the objects whose depths
+#: the soft Z-buffer orders on a ray, Eq. 16-18; the paper names no threshold).
+COVERAGE_THRESHOLD = 0.9
+
 
 def label_pixels(st: SceneTensors, cfg: TrainConfig) -> torch.Tensor:
     """Flat ``(P,)`` (frame * HW + pixel) indices of the label pool candidates: every
@@ -40,7 +47,7 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     """Every object rendered alone on training pixels ``flat (P,)``.
 
     Returns ``depth (P, K)`` (independent planar depth in the object's own unit), ``acc (P, K)``
-    (opacity) and ``covered (P, K)`` (``acc > coverage_threshold``). A ray an object covers
+    (opacity) and ``covered (P, K)`` (``acc >`` :data:`COVERAGE_THRESHOLD`). A ray an object covers
     semi-transparently stays in the pool: a thin part is semi-transparent wherever it is, and
     dropping every ray it touches lost the bounds it sets (factory's robot arm; docs/training.md).
     """
@@ -55,10 +62,10 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
         for a in range(0, len(idx), chunk):
             i = idx[a : a + chunk]
             # Only the rays that cross the object's box are rendered (the same values: one object alone).
-            out = render_by_hits(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], cfg.label_samples, None, cfg.skip_occluded)
+            out = render_by_hits(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], LABEL_SAMPLES, None, cfg.skip_occluded)
             depth[i, k] = out.normalised_depth()
             acc[i, k] = out.acc
-            covered[i, k] = out.acc > cfg.coverage_threshold
+            covered[i, k] = out.acc > COVERAGE_THRESHOLD
     return {"depth": depth, "covered": covered, "acc": acc}
 
 
@@ -98,7 +105,7 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
         # labelled valid, which says nothing.
         log.warning(
             "scale phase at iteration %d: no contested ray among %d labelled pixels; the network learns "
-            "no depth order (fields not opaque yet? see coverage_threshold)", iteration, len(flat),
+            "no depth order (fields not yet opaque on two objects at once)", iteration, len(flat),
         )
     return pool
 

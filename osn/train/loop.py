@@ -9,7 +9,7 @@ Schedule (global iteration counter, resumable at any iteration; :mod:`osn.train.
    Z-buffer's per-object depths, Eq. 17), then trains the scale network on ``H`` sampled scale
    vectors per step labelled by the depth order they imply (Eq. 11-13, 18) with BCE-with-logits.
    A field phase composites all objects scaled by one valid scale vector per step (score above
-   ``valid_threshold``; the best candidate with a logged warning when none is) with RGB,
+   :data:`~osn.model.scale_net.FIELD_STEP_THRESHOLD`; the best candidate with a logged warning when none is) with RGB,
    scaled-depth and segmentation losses (weights 1, 1, 0.01; Eq. 8-10).
    The scale phase comes first in a round so field phases never sample from an untrained
    network (in the paper's order the first field phase would); the final scale phase fits the
@@ -46,7 +46,7 @@ from scenecore.validity import ValidRegion
 from benchgen.score.metrics import psnr_from_mse as psnr
 from osn.model.run import read_checkpoint
 from osn.preprocess.inputs import SceneInputs, load_inputs, save_inputs
-from osn.model.scale_net import NonFiniteScores
+from osn.model.scale_net import FIELD_STEP_THRESHOLD, NonFiniteScores
 from osn.train.checkpoint import TrainingDiverged, append_metrics, save_checkpoint, truncate_metrics
 from osn.train.config import TrainConfig
 from osn.train.environment import describe, environment, same_kernels
@@ -195,5 +195,5 @@ def train(
         stop = min(trainer.total, max_iterations) if max_iterations is not None else trainer.total
         _iterate(trainer, monitor, out, stop, progress)
     if trainer.fallbacks:
-        log.warning("%d field steps used a fallback scale vector (no candidate above %.2f)", trainer.fallbacks, cfg.valid_threshold)
+        log.warning("%d field steps used a fallback scale vector (no candidate above %.2f)", trainer.fallbacks, FIELD_STEP_THRESHOLD)
     return out

@@ -29,14 +29,16 @@ def _free_space_today(d: dict[str, Any]) -> str:
 
 
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
-#: that trains as today (a name: that option's value; a function: of the whole config):
+#: that trains as today (or a function of the whole config giving it):
 #: :func:`upgrade_run_config` drops them at that value and refuses any other.
 REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0, "before_depth_margin": 0.95, "label_erode": 0,
-                                   "uncertain_acc": "coverage_threshold",
+                                   "uncertain_acc": 0.9,  # coverage_threshold's value
                                    # sampling budgets and the scale network's size, constants now
                                    "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128,
                                    "scale_width": 64, "scale_layers": 4,
                                    "label_rays": 0,  # every scale step scores the whole pool
+                                   # the paper's values that every config held, constants now
+                                   "w_rgb": 1.0, "label_samples": 24, "coverage_threshold": 0.9, "valid_threshold": 0.95,
                                    "free_space": _free_space_today}
 
 
@@ -46,20 +48,18 @@ AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0
                                "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others"}
 
 
-def upgrade_run_config(d: dict[str, Any], defaults: Any) -> dict[str, Any]:
+def upgrade_run_config(d: dict[str, Any]) -> dict[str, Any]:
     """A run's own ``config.yaml`` (every key it trained with) as today's options: keys added since
     take the value it trained with (:data:`ADDED_LATER`), removed ones are dropped where they held
     the value that trains as today (:data:`REMOVED_OPTIONS`), so resuming or comparing an older run
-    switches no term on or off. ``defaults``: what gives an option's default (the config class).
-    ``ValueError`` naming the key where it cannot be read so."""
+    switches no term on or off. ``ValueError`` naming the key where it cannot be read so."""
     if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
         raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
                          + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
                          + ": write the number into the file to resume or compare the run")
     field = d.get("field") if isinstance(d.get("field"), dict) else None
     # Each removed option's value today in this config.
-    today = {k: n(d) if callable(n) else d.get(n, getattr(defaults, n)) if isinstance(n, str) else n
-             for k, n in REMOVED_OPTIONS.items()}
+    today = {k: n(d) if callable(n) else n for k, n in REMOVED_OPTIONS.items()}
     today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
     named = {**d, **{f"field.{k}": v for k, v in (field or {}).items()}}
     if gone := [k for k, v in named.items() if k in today and v != today[k]]:

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from osn.model.fields import Field, make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
-from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
+from osn.model.scale_net import FIELD_STEP_THRESHOLD, ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import in_front_pairs, trimmed_labels
 from osn.model.volume import RenderOutput, render
 from osn.preprocess.depth_noise import depth_consistency
@@ -245,7 +245,7 @@ class Trainer:
             # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
             # ray shortens) then pushes its surfaces behind the true ones.
             l_acc = (1.0 - out.acc).square().mean()
-            total = total + cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc
+            total = total + l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc
             if cfg.w_distortion > 0:
                 # The object's own pixels show one surface: a fog spread along the ray has the right
                 # expected depth where sparse depths hold it, and any depth elsewhere (docs/training.md).
@@ -277,12 +277,12 @@ class Trainer:
         # With many objects uniform candidates can all miss the valid set (a small share of the
         # box once several objects are free); then candidates around remembered valid vectors.
         sbar, _, p, fell_back = sample_valid(
-            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, self.cfg.valid_threshold, warn=False,
+            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, FIELD_STEP_THRESHOLD, warn=False,
             near=self._near_positives if len(self.positives) else None,
         )
         if fell_back and self.fallbacks == 0:
             log.warning("no candidate scored above %.2f (best %.3f): field steps use the best one; "
-                        "the count is in metrics.jsonl ('fallbacks')", self.cfg.valid_threshold, p)
+                        "the count is in metrics.jsonl ('fallbacks')", FIELD_STEP_THRESHOLD, p)
         self.fallbacks += int(fell_back)
         return sbar, p
 
@@ -309,7 +309,7 @@ class Trainer:
         lab = st.labels[frames, p]
         seg_ok = lab >= 0
         l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
-        loss = cfg.w_rgb * l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg
+        loss = l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg
         out_losses = {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
         if cfg.w_alone > 0:
             # The stage-1 objective keeps each object's own geometry (its silhouette, opacity,

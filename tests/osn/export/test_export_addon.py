@@ -514,7 +514,7 @@ def test_osn_export_command_on_a_run_directory(tmp_path: Path) -> None:
     net = ScaleNet(len(inputs.objects) - 1, seed=3)
     with torch.no_grad():
         net.mlp[-1].bias.fill_(4.0)  # accept most of the domain, as a trained network on an easy scene
-    cfg = {"field": vars(fcfg), "valid_threshold": 0.6}
+    cfg = {"field": vars(fcfg)}
     torch.save({"config": cfg, "resolutions": [12] * len(fields), "fields": [f.state_dict() for f in fields],
                 "net": net.state_dict(), "iteration": 7}, run / "checkpoint.pt")
     (run / "run.json").write_text(json.dumps({"dataset": str(tmp_path / "data")}))  # as `osn train` writes; not read

@@ -22,7 +22,7 @@ from tests.osn.train.common import small_config
 
 
 @pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
-                                 {"valid_threshold": 1.5}, {"valid_threshold": 1.0}, {"rounds": "five"},
+                                 {"w_seg": -0.1}, {"scale_lr_final": 1.5}, {"rounds": "five"},
                                  {"label_replay": "high"}, {"free_band": -1}, {"depth_robust": -1.0},
                                  {"depth_robust": "always"}])
 def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
@@ -77,9 +77,12 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_before_depth": 1.0}))
     with pytest.raises(ValueError, match=r"trained with w_before_depth: 1.0, which this version no longer has"):
         TrainConfig.from_yaml(path, run_config=True)
-    # A removed option's neutral value may be another option's: uncertain_acc at coverage_threshold.
-    path.write_text(yaml.safe_dump({**TrainConfig(coverage_threshold=0.5).to_dict(), "uncertain_acc": 0.5}))
-    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig(coverage_threshold=0.5)
+    # A paper value that is a constant now: read at that value, refused at another.
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "coverage_threshold": 0.9, "valid_threshold": 0.95}))
+    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "coverage_threshold": 0.5}))
+    with pytest.raises(ValueError, match=r"trained with coverage_threshold: 0.5, which this version no longer has"):
+        TrainConfig.from_yaml(path, run_config=True)
     # A removed field option likewise: read at its neutral value, refused at another.
     d = TrainConfig().to_dict()
     path.write_text(yaml.safe_dump({**d, "field": {**d["field"], "tv_density": 0.0}}))

@@ -72,8 +72,8 @@ def test_paper_options_cite_the_paper_and_additions_cite_experiments_that_exist(
 
 
 @pytest.mark.parametrize("kind, names", [
-    ("paper", ["stage1_iters", "rounds", "field_iters", "scale_iters", "rays", "samples", "w_rgb", "w_depth", "w_seg",
-               "scale_lr", "scale_samples", "coverage_threshold", "valid_threshold", "field.resolution"]),
+    ("paper", ["stage1_iters", "rounds", "field_iters", "scale_iters", "rays", "samples", "w_depth", "w_seg",
+               "scale_lr", "scale_samples", "candidates", "field.resolution"]),
     ("addition", ["final_scale_iters", "w_opacity", "w_free", "free_band", "free_band_objects",
                   "w_distortion", "w_hidden_smooth", "w_edge", "w_alone", "depth_robust",
                   "label_trim", "final_label_trim", "pair_minority", "label_replay",

@@ -13,6 +13,7 @@ import pytest
 from osn.preprocess.oracle import oracle_inputs
 from osn.sample.configurations import sample_configurations
 from osn.model.run import load_run
+from osn.model.scale_net import FIELD_STEP_THRESHOLD
 from osn.train import TrainConfig, train
 from osn.train.checkpoint import read_metrics
 from tests.osn.train.test_option_docs import _category, _options
@@ -58,10 +59,10 @@ def test_every_addition_is_neutral_in_the_paper_configs(path: Path) -> None:
 @pytest.mark.parametrize("path", [PAPER, PAPER_GPU], ids=["cpu", "gpu"])
 def test_the_paper_configs_use_the_papers_losses_rate_and_alternation(path: Path) -> None:
     cfg = TrainConfig.from_yaml(path)
-    assert (cfg.w_rgb, cfg.w_depth, cfg.w_seg) == (1.0, 1.0, 0.01)  # appendix, Loss Weights
+    assert (cfg.w_depth, cfg.w_seg) == (1.0, 0.01)  # appendix, Loss Weights (RGB's is 1, not an option)
     assert cfg.scale_lr == 0.001 and cfg.scale_lr_final == 1.0  # appendix, Training Schedule: Adam 1e-3
     assert cfg.rounds == 5 and cfg.final_scale_iters == 0  # Sec. 4.4: R = 5; no phase after the last round
-    assert cfg.valid_threshold == 0.95
+    assert FIELD_STEP_THRESHOLD == 0.95  # Sec. 3.3, below Eq. 4
 
 
 def test_the_gpu_paper_config_differs_only_in_size_and_representation() -> None:

@@ -14,7 +14,7 @@ from osn.model.volume import render
 from osn.preprocess.inputs import normalise_scales
 from osn.preprocess.oracle import oracle_inputs
 from osn.train import TrainConfig, Trainer, build_schedule
-from osn.train.labels import build_label_pool, label_pixels, render_alone_depths
+from osn.train.labels import COVERAGE_THRESHOLD, build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
 from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
@@ -38,7 +38,10 @@ def test_single_object_skips_the_scale_network(tiny_dataset: Path) -> None:
 
 def test_field_phase_survives_an_untrained_network(tiny_dataset: Path, caplog) -> None:
     """No candidate above the threshold: the best one is used, a warning is logged, no crash."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(valid_threshold=0.999999), torch.device("cpu"))
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
+    with torch.no_grad():  # a network that scores every configuration about 0.5
+        tr.net.mlp[-1].weight.zero_()
+        tr.net.mlp[-1].bias.zero_()
     with caplog.at_level(logging.WARNING):
         out = tr.step_fields()
     assert np.isfinite(out["rgb"]) and np.isfinite(out["seg"]) and tr.fallbacks == 1
@@ -84,10 +87,9 @@ def test_without_depth_there_is_no_depth_loss(tiny_dataset: Path) -> None:
 
 
 def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_dataset: Path) -> None:
-    """The anchor covers a label ray as every object does, above ``coverage_threshold``, whatever
-    the inputs' source; a run's own config that still names the removed ``anchor_coverage`` reads,
-    a user's config that names it is refused."""
-    cfg = _cfg(coverage_threshold=0.5)
+    """The anchor covers a label ray as every object does, above ``COVERAGE_THRESHOLD``, whatever
+    the inputs' source; a user's config that names the removed ``anchor_coverage`` is refused."""
+    cfg = _cfg()
     for source in ("oracle", "colmap"):
         inputs = oracle_inputs(tiny_dataset)
         inputs.source = source
@@ -96,15 +98,15 @@ def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_datase
             tr.step_stage1()
         flat = label_pixels(tr.st, cfg)
         c = render_alone_depths(tr.st, tr.fields, flat, cfg)
-        assert torch.equal(c["covered"], c["acc"] > 0.5)
-        assert (c["covered"][:, tr.st.anchor] & (c["acc"][:, tr.st.anchor] <= 0.9)).any()  # the threshold is 0.5, not 0.9
+        assert torch.equal(c["covered"], c["acc"] > COVERAGE_THRESHOLD)
+        assert c["covered"][:, tr.st.anchor].any() and (~c["covered"][:, tr.st.anchor]).any()
     with pytest.raises(ValueError, match="anchor_coverage"):
         TrainConfig.from_dict({"anchor_coverage": 0.5})
 
 def test_scale_phase_warns_when_no_ray_constrains_overlapping_objects(tiny_dataset: Path, caplog) -> None:
     """Untrained fields are transparent, so no ray constrains a depth order: the scale phase
     would label every sample valid and learn nothing; it says so. Trained fields do not warn."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(coverage_threshold=0.9), torch.device("cpu"))
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
     with caplog.at_level(logging.WARNING):
         tr.ensure_cache(tr.schedule[1])
     assert len(tr.cache["flat"]) == 0
