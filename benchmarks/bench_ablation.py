@@ -6,14 +6,16 @@ of additions set to its neutral value (:data:`FAMILIES`; each option's category 
 are in docs/training.md, Options), and optionally the paper's configuration, from SfM inputs (the
 published path). The inputs are not recomputed per configuration: every run of a scene starts
 from the SfM, oracle and ground-truth stages of one ``bench_heldout.py`` run of that scene
-(``--base LABEL``, run first with ``bench_heldout.py --root ROOT --split development``), so a
+(``--base LABEL``, run first with ``bench_heldout.py --root ROOT --split development``, with
+``--presets`` for suite presets), so a
 difference between two rows is the training configuration's alone. Per run the figures of
 ``bench_heldout.py`` (valid-set IoU, best of N minus the highest-score solution, training time);
 per configuration mean ± std over scenes and training seeds, and the paired difference of IoU
 from the default's run of the same scene and seed. Everything resumes. Run:
 
     .venv/bin/python benchmarks/bench_ablation.py --root /tmp/dev3 --base cand --seeds 3
-        [--families label-rule,free-space] [--train-seeds 0,1] [--jobs 2] [--executor ray]
+        [--presets dining-table,chessboard-8] [--families label-rule,free-space] [--train-seeds 0,1]
+        [--jobs 2] [--executor ray]
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from bench_heldout import FIELDS, _mean_std, _measured, run_one, seed_work
+from bench_heldout import FIELDS, _mean_std, _measured, presets_arg, run_one, scene_key, seed_work
 from results_json import table
 
 from benchutil import add_executor_args, finish_parallel, print_command, run_parallel
@@ -96,13 +98,13 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
         rows.append([name, off, str(len(rs)), *cells, _mean_std(deltas, "{:+.3f}") if name != "default" else ""])
         why = (FAMILIES[name][0] if name in FAMILIES else "OSN as published: every addition off" if name == "paper"
                else "every addition on")
-        per_scene = " / ".join(f"{r['iou']:.3f}" if _measured(r.get("iou")) else "-" for r in sorted(rs, key=lambda r: (r["train_seed"], r["seed"])))
+        per_scene = " / ".join(f"{r['iou']:.3f}" if _measured(r.get("iou")) else "-" for r in sorted(rs, key=lambda r: (r["train_seed"], scene_key(r["seed"]))))
         departures.append([name if name in ("default", "paper") else f"without {name}", why, per_scene,
                            _mean_std(deltas, "{:+.3f}") if name != "default" else "",
                            cells[3], cells[6]])
     per_run = [[r["config"], str(r["seed"]), str(r["train_seed"]),
                 *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
-                r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], r["seed"], r["train_seed"]))]
+                r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], scene_key(r["seed"]), r["train_seed"]))]
     heads = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scale error of matches", "training PSNR",
              "training time (s)"]
     heads_d = ["configuration", "what the family does", "IoU per scene", "IoU - default's", "best of N - highest score (dB)",
@@ -111,7 +113,7 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
             # The IoU columns alone, for the README.
             "departures_short": table([heads_d[i] for i in (0, 2, 3)], [[r[i] for i in (0, 2, 3)] for r in departures]),
             "ablation": table(["config", "switched off", "runs", *heads, "IoU - default's (paired)"], rows),
-            "ablation_per_run": table(["config", "scene seed", "training seed", *heads, "note"], per_run)}
+            "ablation_per_run": table(["config", "scene", "training seed", *heads, "note"], per_run)}
 
 
 def main() -> int:
@@ -122,6 +124,8 @@ def main() -> int:
     ap.add_argument("--base", default="default", help="the bench_heldout.py label whose inputs every run starts from")
     ap.add_argument("--seeds", type=int, default=3, help="the first K development seeds (default: 3)")
     ap.add_argument("--seed-list", default=None, help="explicit development seeds instead (A:B or a list)")
+    ap.add_argument("--presets", default="", help="suite presets added to the scenes, comma-separated (their base runs "
+                    "from bench_heldout.py --presets)")
     ap.add_argument("--families", default=",".join(FAMILIES), help=f"families to switch off (default: all: {', '.join(FAMILIES)})")
     ap.add_argument("--paper", action="store_true", help="also train configs/osn-paper.yaml")
     ap.add_argument("--train-seeds", default="0", help="training seeds, comma-separated (default: 0)")
@@ -136,6 +140,7 @@ def main() -> int:
     seeds = parse_seeds(args.seed_list) if args.seed_list else list(split)[: args.seeds]
     if outside := [s for s in seeds if s not in split]:
         ap.error(f"seeds {outside} are not in the development split (never tune on held-out seeds)")
+    seeds += presets_arg(ap, args.presets, "development")
     families = [f for f in args.families.split(",") if f]
     if bad := [f for f in families if f not in FAMILIES]:
         ap.error(f"unknown family {bad[0]!r} (expected one of {', '.join(FAMILIES)})")

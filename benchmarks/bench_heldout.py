@@ -10,6 +10,10 @@ solution (dB, through the scorer), the mean scale error of the matches, training
 Per source: mean ± std over seeds and the worst seed's IoU. Everything resumes (datasets and demo
 stages), so a killed run is rerun with the same command.
 
+``--presets`` adds suite presets to the development split's scenes at the family's size (64 px,
+G = 20; the defaults were tuned on them, so never in a held-out report): ``PRESET`` in a table's
+scene column where a seed stands otherwise.
+
 Runs go in ``--jobs`` parallel processes (each with the machine's cores shared out) or, with
 ``--executor ray``, as Ray tasks on a cluster with a shared file system (``--address``). Prints the
 command first, then one row per run as it finishes and the pooled table; writes ``--out`` (JSON,
@@ -17,6 +21,7 @@ the layout of ``results_json.py``). Run:
 
     .venv/bin/python benchmarks/bench_heldout.py --root /tmp/heldout --seeds 3 [--split held-out]
         [--sources colmap,oracle] [--config configs/osn-paper.yaml --label paper] [--jobs 2]
+        [--split development --presets dining-table,chessboard-8]
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Union
 
 from results_json import table
 
@@ -42,19 +47,42 @@ SOURCES = ("colmap", "oracle")
 #: Attempts of a run refused because its dataset is in use (see ``run_one``).
 RETRIES_IN_USE = 10
 
+#: A scene: a seed of the procedural family or the name of a suite preset.
+Scene = Union[int, str]
+
+
+def scene_dir(root: Path, scene: Scene) -> Path:
+    """Where ``scene``'s dataset and runs live: ``root/random-SEED`` or ``root/preset-NAME``."""
+    return root / (f"random-{scene}" if isinstance(scene, int) else f"preset-{scene}")
+
+
+def scene_key(scene: Scene) -> tuple:
+    """Sort key of scenes: seeds in order, then presets by name."""
+    return (1, scene) if isinstance(scene, str) else (0, scene)
+
+
+def scene_spec(scene: Scene) -> Any:
+    """The spec of a family seed, or of a preset at the family's size (resolution, G)."""
+    from benchgen.scene.procedural import DEFAULTS, random_spec
+    from benchgen.scene.spec import load_preset
+
+    if isinstance(scene, int):
+        return random_spec(scene)
+    return load_preset(scene).with_overrides(resolution=DEFAULTS["resolution"], configs=DEFAULTS["configs"])
+
 
 #: Demo stages whose outputs depend on the scene and the inputs only: copied from the base run.
 UPSTREAM_STAGES = ("generate", "sfm-video", "preprocess", "ground-truth")
 UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
 
 
-def seed_work(root: Path, seed: int, base: str, label: str, source: str) -> None:
-    """Start ``random-SEED/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
+def seed_work(root: Path, seed: Scene, base: str, label: str, source: str) -> None:
+    """Start ``SCENE/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
     and outputs (hard links where the file system allows), so ``osn demo`` resumes at training."""
-    src = root / f"random-{seed}" / f"{base}-{source}"
+    src = scene_dir(root, seed) / f"{base}-{source}"
     if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
         raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
-    dst = root / f"random-{seed}" / f"{label}-{source}"
+    dst = scene_dir(root, seed) / f"{label}-{source}"
     if (dst / ".done").is_dir():
         return
     tmp = dst.with_name(dst.name + ".part")
@@ -67,7 +95,7 @@ def seed_work(root: Path, seed: int, base: str, label: str, source: str) -> None
     for d in UPSTREAM_DIRS:
         if (src / d).is_dir():
             shutil.copytree(src / d, tmp / d, copy_function=_link_or_copy)
-    (tmp / "dataset").symlink_to((root / f"random-{seed}" / "dataset").resolve(), target_is_directory=True)
+    (tmp / "dataset").symlink_to((scene_dir(root, seed) / "dataset").resolve(), target_is_directory=True)
     tmp.rename(dst)
 
 
@@ -78,16 +106,15 @@ def _link_or_copy(a: str, b: str) -> None:
         shutil.copy2(a, b)
 
 
-def dataset_for(seed: int, root: Path, threads: int) -> Path:
-    """The family's dataset of ``seed`` under ``root/random-SEED/dataset`` (generated or resumed)."""
-    from benchgen.scene.procedural import random_spec
+def dataset_for(seed: Scene, root: Path, threads: int) -> Path:
+    """The dataset of ``seed`` (:func:`scene_spec`) under :func:`scene_dir` (generated or resumed)."""
     from benchgen.scene.spec import dump_spec
 
-    d = root / f"random-{seed}"
+    d = scene_dir(root, seed)
     d.mkdir(parents=True, exist_ok=True)
     spec = d / "spec.yaml"
     if not spec.is_file():
-        spec.write_text(dump_spec(random_spec(seed)))
+        spec.write_text(dump_spec(scene_spec(seed)))
     cmd = [sys.executable, "-m", "benchgen.cli", "generate", "--spec", str(spec), "--out", str(d / "dataset"), "--quiet"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(threads))
     if proc.returncode != 0:
@@ -95,7 +122,7 @@ def dataset_for(seed: int, root: Path, threads: int) -> Path:
     return d / "dataset"
 
 
-def _dataset_or_error(seed: int, root: Path, threads: int) -> str | None:
+def _dataset_or_error(seed: Scene, root: Path, threads: int) -> str | None:
     try:
         dataset_for(seed, root, threads)
     except RuntimeError as e:
@@ -107,11 +134,11 @@ def _env(threads: int) -> dict[str, str]:
     return {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
 
 
-def run_one(seed: int, source: str, root: Path, config: str | None, label: str, n: int, max_views: int, threads: int) -> dict[str, Any]:
+def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str, n: int, max_views: int, threads: int) -> dict[str, Any]:
     """``osn demo`` of one seed from one source on its dataset (already generated); its figures (or ``error``)."""
     t0 = time.perf_counter()
-    dataset = root / f"random-{seed}" / "dataset"
-    work = root / f"random-{seed}" / f"{label}-{source}"
+    dataset = scene_dir(root, seed) / "dataset"
+    work = scene_dir(root, seed) / f"{label}-{source}"
     work.mkdir(parents=True, exist_ok=True)
     link = work / "dataset"
     if not link.exists():
@@ -199,7 +226,7 @@ HEADERS = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scal
 def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
     ok = [r for r in runs if "error" not in r]
     per_seed = [[str(r["seed"]), r["source"], *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
-                 r.get("note", "")] for r in sorted(ok, key=lambda r: (r["seed"], r["source"]))]
+                 r.get("note", "")] for r in sorted(ok, key=lambda r: (scene_key(r["seed"]), r["source"]))]
     per_seed += [[str(r["seed"]), r["source"], *["-"] * len(FIELDS), f"failed: {r['error']}"] for r in runs if "error" in r]
     pooled = []
     for source in SOURCES:
@@ -216,7 +243,21 @@ def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
             ious = [r["iou"] for r in rs if _measured(r.get("iou"))]
             pooled.append([label, source, str(len(rs)), *cells, f"{min(ious):.3f}" if ious else "-"])
     return {"heldout_pooled": table(["config", "inputs", "seeds", *HEADERS, "worst seed's IoU"], pooled),
-            "heldout_per_seed": table(["seed", "inputs", *HEADERS, "note"], per_seed)}
+            "heldout_per_seed": table(["scene", "inputs", *HEADERS, "note"], per_seed)}
+
+
+def presets_arg(ap: argparse.ArgumentParser, text: str, split: str) -> list[str]:
+    """The ``--presets`` names (comma-separated); an argparse error for an unknown name, or for any
+    preset with a split other than ``development`` (the defaults were tuned on them)."""
+    from benchgen.scene.spec import preset_names
+
+    names = [x for x in text.split(",") if x]
+    if bad := [x for x in names if x not in preset_names()]:
+        ap.error(f"unknown preset {bad[0]!r} (expected one of {', '.join(preset_names())})")
+    if names and split != "development":
+        ap.error("--presets: suite presets are development scenes (the defaults were tuned on them), "
+                 f"not for the {split} split")
+    return names
 
 
 def main() -> int:
@@ -227,6 +268,8 @@ def main() -> int:
     ap.add_argument("--split", choices=tuple(SPLITS), default="held-out", help="which split's seeds (default: held-out)")
     ap.add_argument("--seeds", type=int, default=3, help="the first K seeds of the split (default: 3)")
     ap.add_argument("--seed-list", default=None, help="explicit seeds instead (A:B or a list); must lie in --split")
+    ap.add_argument("--presets", default="", help="suite presets added to the scenes at the family's size, comma-separated "
+                    "(development split only: the defaults were tuned on them)")
     ap.add_argument("--sources", default="colmap,oracle", help="inputs to train from (default: colmap,oracle)")
     ap.add_argument("--config", default=None, help="YAML training config passed to osn demo (default: the CPU defaults)")
     ap.add_argument("--label", default="default", help="name of the config in the table and the run directories")
@@ -243,6 +286,7 @@ def main() -> int:
     seeds = parse_seeds(args.seed_list) if args.seed_list else list(split)[: args.seeds]
     if outside := [s for s in seeds if s not in split]:
         ap.error(f"seeds {outside} are not in the {args.split} split")
+    seeds += presets_arg(ap, args.presets, args.split)
     sources = [s for s in args.sources.split(",") if s]
     if bad := [s for s in sources if s not in SOURCES]:
         ap.error(f"unknown source {bad[0]!r} (expected colmap or oracle)")
