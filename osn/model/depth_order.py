@@ -65,11 +65,12 @@ class OrderConstraints:
         return torch.tensor([len(t) for t in self.thresholds], dtype=torch.float64)
 
 
-def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tensor) -> OrderConstraints:
+def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tensor, minority: float = 0.0) -> OrderConstraints:
     """Constraints of rays with label ``gt (R,)``, depths ``(R, K)`` and coverage ``(R, K)``.
 
     Rays whose labelled object does not cover them, or that no other object covers, constrain
-    nothing and are left out.
+    nothing and are left out. A pair ``(i, j)`` with fewer than ``minority`` times the rays of
+    its opposite ``(j, i)`` is left out too (:func:`minority_pairs`).
     """
     K = covered.shape[1]
     logd = torch.log(depth.double().clamp_min(1e-300))
@@ -87,13 +88,31 @@ def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tens
             m = rows & covered[:, j]
             if bool(m.any()):
                 found[(i, j)] = torch.sort(logd[m, j] - logd[m, i]).values.contiguous()
-    pairs = list(found)
+    drop = minority_pairs({p: len(t) for p, t in found.items()}, minority)
+    pairs = [p for p in found if p not in drop]
     return OrderConstraints(pairs, [found[p] for p in pairs], int((own & (covered.sum(1) >= 2)).sum()))
+
+
+def minority_pairs(counts: dict[tuple[int, int], int], minority: float) -> set[tuple[int, int]]:
+    """The pairs ``(i, j)`` whose ray count is below ``minority`` times that of ``(j, i)``.
+
+    On the pixels two objects share, one of them is in front. When ``j`` covers many pixels
+    labelled ``i`` ("``i`` in front") and ``i`` covers a few labelled ``j``, those few are almost
+    always ``i``'s field filling a gap it cannot resolve (the table seen between a chair's legs,
+    a silhouette one pixel too wide) rather than the two objects interleaving: measured on
+    dining-table and chessboard at 64 px, every such minority pair was violated on all its rays by
+    every exact configuration, and kept, it empties the learned valid set. Dropping a genuine
+    minority pair only loosens a bound.
+    """
+    if minority <= 0:
+        return set()
+    return {(i, j) for (i, j), n in counts.items() if n < minority * counts.get((j, i), 0)}
 
 
 def in_front_pairs(pairs: Iterable[tuple[int, int]]) -> frozenset[tuple[int, int]]:
     """The constrained pairs ``(i, j)`` ("``i`` in front of ``j``") whose opposite ``(j, i)`` is not
-    among them: wherever the two objects overlap, ``i`` is the one in front."""
+    among them: wherever the two objects overlap, ``i`` is the one in front (the opposite had no
+    rays, or so few that :func:`minority_pairs` dropped them as a bleeding silhouette)."""
     ps = set(pairs)
     return frozenset((i, j) for i, j in ps if (j, i) not in ps)
 

@@ -21,7 +21,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "candidates"
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "free_band", "free_band_objects", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "scale_lr_final")
+_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
     """``auto`` (resolved by a measured property of the inputs) or a value ``rule`` accepts."""
@@ -234,6 +234,12 @@ class TrainConfig:
     experiments/2026-11-29-lost-recall-from-sfm-inputs.md): ``label_trim`` of the final scale
     phase: tight labels belong on final fields only. Unit: fraction of a pair's rays, in [0, 1].
     Neutral: the value of ``label_trim`` (the final phase labels as the rounds do)."""
+    pair_minority: float = 0.2
+    """addition (experiments/2026-11-25-valid-set-scene-suite.md,
+    experiments/2026-11-29-paper-constants-and-pair-minority.md): An object pair with fewer label
+    rays than this times its opposite pair's is left out of the labels: those few rays are a field
+    filling a gap it cannot resolve. Unit: ratio of ray counts, in [0, 1]. Neutral: 0 (every pair
+    kept)."""
     label_stride: int = 0
     """addition (not measured): The label pool takes every ``label_stride``-th labelled pixel per
     axis; 0 picks the stride that keeps about :data:`AUTO_LABEL_SIDE` pixels along the longer

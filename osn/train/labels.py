@@ -99,7 +99,7 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
     keep = contested_rays(st, flat, c["depth"], c["covered"])
     pool = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
     pool["gt"] = st.labels.reshape(-1)[pool["flat"]]
-    pool["constraints"] = order_constraints(pool["depth"], pool["covered"], pool["gt"])
+    pool["constraints"] = order_constraints(pool["depth"], pool["covered"], pool["gt"], cfg.pair_minority)
     if not len(pool["flat"]):
         # No ray constrains any depth order (fields still transparent): every sample is
         # labelled valid, which says nothing.

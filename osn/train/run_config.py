@@ -37,7 +37,6 @@ REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0
                                    "hidden_strips": 32, "edge_rays": 64, "edge_slope": 0.02, "free_rays": 128,
                                    "scale_width": 64, "scale_layers": 4,
                                    "label_rays": 0,  # every scale step scores the whole pool
-                                   "pair_minority": 0.0,  # every object pair labels
                                    # the paper's values that every config held, constants now
                                    "w_rgb": 1.0, "label_samples": 24, "coverage_threshold": 0.9, "valid_threshold": 0.95,
                                    "free_space": _free_space_today}

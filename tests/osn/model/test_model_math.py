@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from osn.model.fields import PLANE_AXES, DenseGridField, FieldConfig, make_field, trilinear, triplane
 from osn.model.scale_net import ScaleNet, full_sbar, sample_valid
-from osn.model.depth_order import in_front_pairs, order_constraints, trimmed_labels
+from osn.model.depth_order import in_front_pairs, minority_pairs, order_constraints, trimmed_labels
 from osn.model.volume import (
     ObjectRays, _box_interval, distortion, guided_positions, object_hits, ray_box, render,
     render_by_hits, shade, transmittance_weights,
@@ -521,8 +521,8 @@ def test_order_constraints_count_what_the_z_buffer_gets_wrong(K: int, R: int, H:
 
 
 def test_in_front_pairs_are_the_pairs_without_an_opposite() -> None:
-    """A pair whose opposite was never seen says which object is in front; two objects seen in
-    front of each other (interleaved, or a silhouette that bleeds) say nothing."""
+    """A pair whose opposite was dropped (a bleed) or never seen says which object is in front;
+    two objects seen in front of each other (interleaved) say nothing."""
     assert in_front_pairs([(1, 2), (0, 1)]) == {(1, 2), (0, 1)}
     assert in_front_pairs([(1, 2), (2, 1), (3, 1)]) == {(3, 1)}
     assert in_front_pairs([]) == frozenset()
@@ -534,14 +534,17 @@ def test_in_front_pairs_are_the_pairs_without_an_opposite() -> None:
     covered = torch.zeros(R, 3, dtype=torch.bool)
     covered[:, 1] = covered[:, 2] = True
     gt = torch.tensor([1] * 40 + [2] * 3)
-    assert in_front_pairs(order_constraints(depth, covered, gt).pairs) == frozenset()
-    assert in_front_pairs(order_constraints(depth[:40], covered[:40], gt[:40]).pairs) == {(1, 2)}
+    assert in_front_pairs(order_constraints(depth, covered, gt, minority=0.2).pairs) == {(1, 2)}
+    assert in_front_pairs(order_constraints(depth, covered, gt, minority=0.0).pairs) == frozenset()
 
 
-def test_both_directions_of_a_pair_constrain_on_their_own_rays() -> None:
-    """A chair (1) in front of a table (2) on 40 rays and a 'table in front' bleed on 3: both
-    directions are kept, each with its own thresholds; the equal-scale configuration violates the
-    3 bleed rays, scaling the chair 3 times violates the chair's 40."""
+def test_minority_pairs_are_dropped_against_their_opposite_pair() -> None:
+    """A chair (1) in front of a table (2) on 40 rays and a 'table in front' bleed on 3: the 3
+    go at ``minority`` 0.2 (3 < 8), not at 0.05 (3 >= 2); a pair without an opposite stays."""
+    counts = {(1, 2): 40, (2, 1): 3, (0, 1): 5}
+    assert minority_pairs(counts, 0.2) == {(2, 1)}
+    assert minority_pairs(counts, 0.05) == set() and minority_pairs(counts, 0.0) == set()
+    # Built from rays: the bleed rays are labelled 2 and covered by 1 nearer than 2's own depth.
     R = 43
     depth = torch.ones(R, 3)
     depth[:40, 2] = 2.0  # chair in front of the table: label 1, table 2 behind (ratio 2)
@@ -549,12 +552,14 @@ def test_both_directions_of_a_pair_constrain_on_their_own_rays() -> None:
     covered = torch.zeros(R, 3, dtype=torch.bool)
     covered[:, 1] = covered[:, 2] = True
     gt = torch.tensor([1] * 40 + [2] * 3)
+    kept = order_constraints(depth, covered, gt, minority=0.2)
+    assert kept.pairs == [(1, 2)] and kept.rays == R  # all contested, the minority pair left out
     both = order_constraints(depth, covered, gt)
-    assert both.pairs == [(1, 2), (2, 1)] and both.rays == R
-    assert both.sizes().tolist() == [40.0, 3.0]
+    assert both.pairs == [(1, 2), (2, 1)]
+    # With the bleed the equal-scale configuration (in every object's unit) violates its 3 rays;
+    # without it the only constraint left is the chair staying in front (sbar_1 / sbar_2 < 2).
     sbar = torch.tensor([[1.0, 1.0, 1.0], [1.0, 3.0, 1.0]], dtype=torch.float64)
-    assert both.violations(sbar).tolist() == [3.0, 40.0]
-    assert both.pair_violations(sbar).tolist() == [[0.0, 3.0], [40.0, 0.0]]
+    assert both.violations(sbar).tolist() == [3.0, 40.0] and kept.violations(sbar).tolist() == [0.0, 40.0]
 
 
 def test_trimmed_labels_allow_the_noise_floor_plus_a_share_of_each_pair() -> None:
