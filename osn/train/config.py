@@ -17,7 +17,8 @@ from osn.model.fields import FieldConfig
 from osn.train.run_config import upgrade_run_config
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "candidates", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every")
+_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "candidates", "eval_every", "eval_pixels",
+             "iou_samples", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "free_band", "free_band_objects", "label_stride")

@@ -9,8 +9,8 @@ Schedule (global iteration counter, resumable at any iteration; :mod:`osn.train.
    Z-buffer's per-object depths, Eq. 17), then trains the scale network on ``H`` sampled scale
    vectors per step labelled by the depth order they imply (Eq. 11-13, 18) with BCE-with-logits.
    A field phase composites all objects scaled by one valid scale vector per step (score above
-   :data:`~osn.model.scale_net.FIELD_STEP_THRESHOLD`; the best candidate with a logged warning when none is) with RGB,
-   scaled-depth and segmentation losses (weights 1, 1, 0.01; Eq. 8-10).
+   :data:`~osn.model.scale_net.FIELD_STEP_THRESHOLD`; the best candidate with a logged warning
+   when none is) with RGB, scaled-depth and segmentation losses (weights 1, 1, 0.01; Eq. 8-10).
    The scale phase comes first in a round so field phases never sample from an untrained
    network (in the paper's order the first field phase would); the final scale phase fits the
    network to the final fields.
