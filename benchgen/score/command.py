@@ -124,11 +124,11 @@ def fidelity_summary(fidelity: dict, name: str) -> str:
 
 def _check(args: argparse.Namespace) -> int:
     """``--check METRICS``: one line per difference and exit 1, or one line and exit 0."""
-    from benchgen.score import provenance as P
+    from benchgen.score.check import check
 
     if args.out is not None or args.unverified or args.max_views or args.no_lpips:
         raise UserError("--check takes only METRICS, PRED, --data and --workers (it scores nothing)")
-    lines, notes = P.check(args.check, args.predictions, args.data, args.workers)
+    lines, notes = check(args.check, args.predictions, args.data, args.workers)
     for line in notes + lines:
         print(line)
     if lines:

@@ -21,6 +21,7 @@ from scenecore.atomic import check_own_dir, own_dir, unmarked_report
 from benchgen.score import coverage as COV
 from benchgen.score import fidelity as F
 from benchgen.score import provenance as P
+from benchgen.score.digests import DATASET_LISTING, PREDICTIONS_LISTING
 from benchgen.score.scorer import METRICS, ScoreResult
 
 FORMAT = "benchgen-score"
@@ -30,7 +31,7 @@ VERSION = 1
 MARKER = ".benchgen-score"
 _WHAT = "a benchgen score report"
 _FILES = ("report.md", "metrics.json", "psnr_matrix.npy", "best_of_n.png", "per_ground_truth.png", "coverage.png",
-          P.PREDICTIONS_LISTING, P.DATASET_LISTING)
+          PREDICTIONS_LISTING, DATASET_LISTING)
 
 
 def _unmarked(out: Path) -> bool:

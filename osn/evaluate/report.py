@@ -20,6 +20,7 @@ from scenecore.atomic import check_own_dir, own_dir, unmarked_report
 from scenecore.dataset import atomic_write_bytes, atomic_write_json, read_json
 from osn.train.environment import describe
 from benchgen.score import provenance as P
+from benchgen.score.digests import DATASET_LISTING, PREDICTIONS_LISTING
 from benchgen.score.report import BY_OBJECT_NOTE, by_object_table
 from benchgen.score.scorer import METRICS
 from osn.evaluate.bestofn import TRUE_SCALES, EvalResult
@@ -238,7 +239,7 @@ def limits_lines(limits: list[dict[str, Any]], rows: int = 8) -> list[str]:
 MARKER = ".osn-report"
 _WHAT = "an osn evaluation report"
 _FILES = ("report.md", "metrics.json", "training_curve.png", "best_of_n.png", "search_time.png", "validity_profile.png",
-          P.PREDICTIONS_LISTING, P.DATASET_LISTING)
+          PREDICTIONS_LISTING, DATASET_LISTING)
 
 
 def _unmarked(out: Path) -> bool:

@@ -134,7 +134,7 @@ def _open_regular(path: str | Path) -> tuple[BinaryIO, int]:
 
 def open_regular(path: str | Path) -> tuple[BinaryIO, int]:
     """``path`` opened for reading and its size when opened, for readers that stream it
-    (``benchgen.score.provenance`` hashes in chunks); ``DatasetError`` naming it when it is
+    (``benchgen.score.digests`` hashes in chunks); ``DatasetError`` naming it when it is
     missing or not a regular file, without blocking on a FIFO."""
     return _open_regular(path)
 

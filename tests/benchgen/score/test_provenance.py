@@ -19,6 +19,7 @@ from PIL import Image
 import benchgen
 from scenecore import dataset as D
 from benchgen.cli import main as benchgen_main
+from benchgen.score import digests as G
 from benchgen.score import provenance as P
 from benchgen.score.lpips import default_weights_path
 from benchgen.score.truth import evaluated_views
@@ -54,8 +55,8 @@ def _digests(pred: Path, dataset: Path, views: list[str], workers: int = 1) -> t
     """Records of the prediction and the ground-truth file sets (the scene read from the tiny
     dataset's copy's original: a byte flipped in scene.json must not change which files are read)."""
     scene = D.load_scene(dataset.parent / "scene-kept") if (dataset.parent / "scene-kept").exists() else D.load_scene(dataset)
-    gt = P.hash_groups(dataset, P.ground_truth_groups(dataset, scene, views, True), P.DATASET_LISTING, workers).record()
-    pr = P.hash_groups(pred, P.prediction_groups(pred), P.PREDICTIONS_LISTING, workers).record()
+    gt = G.hash_groups(dataset, P.ground_truth_groups(dataset, scene, views, True), G.DATASET_LISTING, workers).record()
+    pr = G.hash_groups(pred, P.prediction_groups(pred), G.PREDICTIONS_LISTING, workers).record()
     return pr, gt
 
 
@@ -76,7 +77,7 @@ def test_digests_are_stable_and_change_with_any_byte_of_any_file(tiny_dataset, t
     assert set(gt["groups"]) == {"scene.json", "verification.json", "valid_region.json", "train", "configs/000",
                                  "configs/001", "configs/002"}
     # One file's digest is hashlib's over its bytes.
-    files = P.hash_groups(pred, {"b": None}, "x").files
+    files = G.hash_groups(pred, {"b": None}, "x").files
     assert files["b/rgb/v00_t01.png"] == hashlib.sha256((pred / "b/rgb/v00_t01.png").read_bytes()).hexdigest()
 
     rng = np.random.default_rng(0)
@@ -84,7 +85,7 @@ def test_digests_are_stable_and_change_with_any_byte_of_any_file(tiny_dataset, t
     for root, which in ((pred, 0), (data, 1)):
         rec = (pr, gt)[which]
         groups = P.ground_truth_groups(data, scene, views, True) if which else P.prediction_groups(pred)
-        listed = P.hash_groups(root, groups, "x").files
+        listed = G.hash_groups(root, groups, "x").files
         assert len(listed) == rec["files"]
         for rel in listed:  # one byte of each file flipped, at a random place
             path = root / rel
@@ -123,14 +124,14 @@ def test_metrics_json_records_digests_protocol_scorer_and_per_view_metrics(tiny_
     assert score(pred, tiny_dataset, out, "--max-views", "4") == 0
     m = json.loads((out / "metrics.json").read_text())
     prov = m["provenance"]
-    listing = P.parse_listing((out / "predictions.sha256").read_bytes(), out)
-    assert prov["predictions"]["sha256"] == P.set_digest(listing) == hashlib.sha256(
+    listing = G.parse_listing((out / "predictions.sha256").read_bytes(), out)
+    assert prov["predictions"]["sha256"] == G.set_digest(listing) == hashlib.sha256(
         (out / "predictions.sha256").read_bytes()).hexdigest()
     for rel, h in listing.items():
         assert hashlib.sha256((pred / rel).read_bytes()).hexdigest() == h
     assert set(prov["predictions"]["groups"]) == {"a", "b", "method.json"}
     # The ground truth: the files the score read, the four evaluated views and no other.
-    gt = P.parse_listing((out / "dataset.sha256").read_bytes(), out)
+    gt = G.parse_listing((out / "dataset.sha256").read_bytes(), out)
     views = m["views"]
     assert len(views) == 4 and prov["protocol"]["views"] == views and prov["protocol"]["max_views"] == 4
     expect = {"scene.json", "verification.json"} | {
@@ -140,7 +141,7 @@ def test_metrics_json_records_digests_protocol_scorer_and_per_view_metrics(tiny_
         masks = tiny_dataset / "configs" / f"{g:03d}" / "covisibility.npz"  # stored masks, when generated with them
         expect |= {f"configs/{g:03d}/config.json"} | ({masks.relative_to(tiny_dataset).as_posix()} if masks.exists() else set()) | {
             p.relative_to(tiny_dataset).as_posix() for v in views for p in D.frame_paths(tiny_dataset, v, g).all()}
-    assert set(gt) == expect and prov["ground_truth"]["sha256"] == P.set_digest(gt)
+    assert set(gt) == expect and prov["ground_truth"]["sha256"] == G.set_digest(gt)
     assert prov["verification"] == {"verified": True, "problem": None, "scored_unverified": False}
     proto = prov["protocol"]
     assert proto["name"] == P.PROTOCOL_NAME and proto["version"] == P.PROTOCOL_VERSION and proto["mask"]["depth_rtol"] > 0
@@ -190,7 +191,7 @@ def test_check_passes_on_an_untouched_result_and_names_the_changed_file(tiny_dat
     lines = [ln for ln in capsys.readouterr().out.splitlines() if not ln.startswith("note:")]
     assert sorted(lines) == sorted([f"{pred / 'c'}: not in the scored predictions (added since)",
                                     f"{pred / 'a' / 'ids' / view}.png: missing (scored, sha256 "
-                                    + P.parse_listing((out / 'predictions.sha256').read_bytes(), out)[
+                                    + G.parse_listing((out / 'predictions.sha256').read_bytes(), out)[
                                         f"a/ids/{view}.png"][:12] + "...)"]), lines
     shutil.rmtree(pred / "c")
     shutil.copy(data / "configs" / "000" / "ids" / f"{view}.png", pred / "a" / "ids" / f"{view}.png")
@@ -301,19 +302,19 @@ def test_file_digest_equals_sha256_at_every_size_and_refuses_a_file_that_changed
     from scenecore.dataset import images
 
     rng = np.random.default_rng(0)
-    for n in (0, 1, P.CHUNK - 1, P.CHUNK, P.CHUNK + 1, 2 * P.CHUNK + 7):
+    for n in (0, 1, G.CHUNK - 1, G.CHUNK, G.CHUNK + 1, 2 * G.CHUNK + 7):
         f = tmp_path / f"f{n}"
         data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
         f.write_bytes(data)
-        assert P.file_sha256(f) == P.file_sha256(str(f)) == hashlib.sha256(data).hexdigest()
+        assert G.file_sha256(f) == G.file_sha256(str(f)) == hashlib.sha256(data).hexdigest()
         if n:
             assert D.read_regular(f, n) == data
     real = images._open_regular
     for delta in (-1, 1):  # recorded one byte short: the file grew; one byte over: it shrank
         monkeypatch.setattr(images, "_open_regular", lambda p, d=delta: (lambda fh, size: (fh, size + d))(*real(p)))
-        for n in (1, P.CHUNK + 1):
+        for n in (1, G.CHUNK + 1):
             f = tmp_path / f"f{n}"
             with pytest.raises(D.DatasetError, match=f"{f}: changed size while being read"):
-                P.file_sha256(f)
+                G.file_sha256(f)
             with pytest.raises(D.DatasetError, match=f"{f}: changed size while being read"):
                 D.read_regular(f, 10 * n)
