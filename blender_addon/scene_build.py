@@ -370,75 +370,104 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
     made = _Created()
     scene = context.scene
     try:
-        meta = data.manifest.get("meta")
-        title = (meta.get("name") if isinstance(meta, dict) else None) or "export"
-        coll = made.add(bpy.data.collections.new(f"OSN {title}"))
-        coll[P_MANIFEST] = json.dumps(data.manifest)
-        centres = data.camera_to_scene[:, :3, 3]
-        coll[P_CENTRES] = centres.ravel().tolist()
-        if data.net_layers is not None:
-            for i, (W, b) in enumerate(data.net_layers):
-                coll[f"osn_net_W{i}"] = W.ravel().tolist()
-                coll[f"osn_net_b{i}"] = b.ravel().tolist()
-        samples = data.samples if data.samples is not None else np.zeros((0, len(data.objects)))
-        coll[P_SAMPLES] = samples.ravel().tolist()
-        frames_all = np.arange(data.num_frames) + 1.0
+        coll = _export_collection(data, made)
         for i, o in enumerate(data.objects):
-            empty = made.add(bpy.data.objects.new(o.name, None))
-            empty.empty_display_type = "CUBE"
-            empty.empty_display_size = float(np.abs(o.bbox).max())
-            coll.objects.link(empty)
-            empty[P_INDEX] = i
-            empty[P_BASE] = o.object_to_scene.ravel().tolist()
-            empty[P_FRAMES] = o.frames.tolist()
-            empty[P_KEYED] = 1.0
-            if not o.is_anchor:
-                lo, hi = o.valid_interval
-                empty[P_SCALE] = float(np.clip(1.0, lo, hi))
-                ui = empty.id_properties_ui(P_SCALE)
-                ui.update(min=lo, max=hi, soft_min=lo, soft_max=hi, default=float(np.clip(1.0, lo, hi)),
-                          description=f"Actual scale of {o.name} (learned valid interval [{lo:.4g}, {hi:.4g}])")
-            vol = made.add(bpy.data.volumes.new(f"{o.name} volume"))
-            vol.filepath = o.volume_path
-            _check_volume(vol, o.volume_path, o.field)
-            # Density per world unit (osn_inv_scale compensates the object's scale); full float
-            # precision: the pre-activation density goes through an exponential.
-            vol.render.space, vol.render.precision = "WORLD", "FULL"
-            planes = None
-            if o.field is not None and o.field.planes is not None:
-                planes = [made.add(img) for img in plane_images(f"OSN {o.name}", o.field.planes)]
-            vol.materials.append(made.add(volume_material(f"OSN {o.name} volume", o, planes)))
-            vobj = made.add(bpy.data.objects.new(f"{o.name} volume", vol))
-            vobj[P_INV] = 1.0
-            parts = [vobj]
-            if o.mesh is not None and len(o.mesh["faces"]):
-                me = made.add(_mesh_data(f"{o.name} mesh", o.mesh))
-                me.materials.append(made.add(mesh_material(f"OSN {o.name} surface", "Col")))
-                parts.append(made.add(bpy.data.objects.new(f"{o.name} mesh", me)))
-            for part in parts:
-                coll.objects.link(part)
-                part.parent = empty
-                # The mesh is a viewport preview, not rendered: renders show the volume, the
-                # learned field (docs/export-and-addon.md has both measured). render_meshes()
-                # lets them into renders.
-                part.hide_render = part.type == "MESH"
-                if len(o.frames) < data.num_frames:
-                    key_presence(part, data.num_frames, o.frames, made, _presence_paths(part))
-            _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)  # keys the poses at that scale
-        cams = [("OSN training camera", data.camera_to_scene)]
-        if data.test_cameras is not None:
-            cams += [(f"OSN test camera {v}", c) for v, c in enumerate(data.test_cameras)]
-        cam_objs = []
-        for name, c2s in cams:
-            cobj = made.add(bpy.data.objects.new(name, made.add(_camera_data(name, data))))
-            coll.objects.link(cobj)
-            key_matrices(cobj, frames_all, core.blender_camera_matrices(c2s), made)
-            cam_objs.append(cobj)
+            _import_object(coll, data, i, o, made)
+        cam_objs = _import_cameras(coll, data, made)
     except BaseException:
         made.remove_all()
         raise
     scene.collection.children.link(coll)
     scene.camera = cam_objs[0]
+    _render_settings(scene, data)
+    scene.osn_collection = coll
+    return coll
+
+
+def _export_collection(data: core.ExportData, made: _Created) -> bpy.types.Collection:
+    """The export's collection, holding its manifest, camera centres, scale network and samples
+    as custom properties (what the panel's sampling and ranges read back)."""
+    meta = data.manifest.get("meta")
+    title = (meta.get("name") if isinstance(meta, dict) else None) or "export"
+    coll = made.add(bpy.data.collections.new(f"OSN {title}"))
+    coll[P_MANIFEST] = json.dumps(data.manifest)
+    coll[P_CENTRES] = data.camera_to_scene[:, :3, 3].ravel().tolist()
+    if data.net_layers is not None:
+        for i, (W, b) in enumerate(data.net_layers):
+            coll[f"osn_net_W{i}"] = W.ravel().tolist()
+            coll[f"osn_net_b{i}"] = b.ravel().tolist()
+    samples = data.samples if data.samples is not None else np.zeros((0, len(data.objects)))
+    coll[P_SAMPLES] = samples.ravel().tolist()
+    return coll
+
+
+def _import_object(coll: bpy.types.Collection, data: core.ExportData, i: int, o: core.ExportObjectData,
+                   made: _Created) -> None:
+    """Object ``i`` of the export: an empty carrying its pose, frames and scale (a property bounded
+    by its learned valid interval), parent of its volume and, when exported, its preview mesh;
+    keyed at its scale."""
+    empty = made.add(bpy.data.objects.new(o.name, None))
+    empty.empty_display_type = "CUBE"
+    empty.empty_display_size = float(np.abs(o.bbox).max())
+    coll.objects.link(empty)
+    empty[P_INDEX] = i
+    empty[P_BASE] = o.object_to_scene.ravel().tolist()
+    empty[P_FRAMES] = o.frames.tolist()
+    empty[P_KEYED] = 1.0
+    if not o.is_anchor:
+        lo, hi = o.valid_interval
+        empty[P_SCALE] = float(np.clip(1.0, lo, hi))
+        ui = empty.id_properties_ui(P_SCALE)
+        ui.update(min=lo, max=hi, soft_min=lo, soft_max=hi, default=float(np.clip(1.0, lo, hi)),
+                  description=f"Actual scale of {o.name} (learned valid interval [{lo:.4g}, {hi:.4g}])")
+    vol = made.add(bpy.data.volumes.new(f"{o.name} volume"))
+    vol.filepath = o.volume_path
+    _check_volume(vol, o.volume_path, o.field)
+    # Density per world unit (osn_inv_scale compensates the object's scale); full float
+    # precision: the pre-activation density goes through an exponential.
+    vol.render.space, vol.render.precision = "WORLD", "FULL"
+    planes = None
+    if o.field is not None and o.field.planes is not None:
+        planes = [made.add(img) for img in plane_images(f"OSN {o.name}", o.field.planes)]
+    vol.materials.append(made.add(volume_material(f"OSN {o.name} volume", o, planes)))
+    vobj = made.add(bpy.data.objects.new(f"{o.name} volume", vol))
+    vobj[P_INV] = 1.0
+    parts = [vobj]
+    if o.mesh is not None and len(o.mesh["faces"]):
+        me = made.add(_mesh_data(f"{o.name} mesh", o.mesh))
+        me.materials.append(made.add(mesh_material(f"OSN {o.name} surface", "Col")))
+        parts.append(made.add(bpy.data.objects.new(f"{o.name} mesh", me)))
+    for part in parts:
+        coll.objects.link(part)
+        part.parent = empty
+        # The mesh is a viewport preview, not rendered: renders show the volume, the
+        # learned field (docs/export-and-addon.md has both measured). render_meshes()
+        # lets them into renders.
+        part.hide_render = part.type == "MESH"
+        if len(o.frames) < data.num_frames:
+            key_presence(part, data.num_frames, o.frames, made, _presence_paths(part))
+    _apply_scale(empty, coll, float(empty.get(P_SCALE, 1.0)), made)  # keys the poses at that scale
+
+
+def _import_cameras(coll: bpy.types.Collection, data: core.ExportData, made: _Created) -> list[bpy.types.Object]:
+    """The training camera and, when exported, each test camera, keyed at every frame; the
+    training camera first."""
+    frames_all = np.arange(data.num_frames) + 1.0
+    cams = [("OSN training camera", data.camera_to_scene)]
+    if data.test_cameras is not None:
+        cams += [(f"OSN test camera {v}", c) for v, c in enumerate(data.test_cameras)]
+    cam_objs = []
+    for name, c2s in cams:
+        cobj = made.add(bpy.data.objects.new(name, made.add(_camera_data(name, data))))
+        coll.objects.link(cobj)
+        key_matrices(cobj, frames_all, core.blender_camera_matrices(c2s), made)
+        cam_objs.append(cobj)
+    return cam_objs
+
+
+def _render_settings(scene: bpy.types.Scene, data: core.ExportData) -> None:
+    """The scene renders as OSN does: the export's image size, its colours shown unchanged, Cycles
+    ray-marching the volumes with pixel-centre rays, the video's frame range."""
     scene.render.resolution_x, scene.render.resolution_y = data.width, data.height
     scene.render.resolution_percentage = 100
     # The learned colours are display values composited as they are (as OSN renders): shown
@@ -457,8 +486,6 @@ def import_export(context: bpy.types.Context, path: str) -> bpy.types.Collection
         cycles.volume_step_rate = 0.25
         cycles.filter_width = 0.01
     scene.frame_start, scene.frame_end = 1, data.num_frames
-    scene.osn_collection = coll
-    return coll
 
 
 # --------------------------------------------------------------------------------------------
