@@ -24,13 +24,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from benchgen.scene.geometry import build_scene, interpolate_poses, part_mesh, rig_cameras
+from benchgen.scene.geometry import build_scene, interpolate_poses, rig_cameras
 from benchgen.scene.plausibility import check_authored_scene
-from benchgen.scene.spec import RIG_PROTOCOLS, TEXTURE_KINDS, Keyframe, Part, RigSpec, SceneSpec, SpecError, spec_from_dict
+from benchgen.scene.shapes import SHAPES, normalised, part_dict_mesh, texture
+from benchgen.scene.shapes import uniform as _u
+from benchgen.scene.spec import RIG_PROTOCOLS, Keyframe, RigSpec, SceneSpec, SpecError, spec_from_dict
 from scenecore.cameras import intrinsics_from_fov, project
 
 #: The two fixed splits of the family: tune defaults on ``development``, report on ``held-out``
@@ -98,146 +100,6 @@ def parse_seeds(text: str) -> list[int]:
 
 
 # ------------------------------------------------------------------------------------------------
-# Shapes. Each returns parts (spec dicts) of an object of extent about 1, base near z = 0; the
-# caller normalises the base to z = 0 and the largest extent to the mover's size.
-# ------------------------------------------------------------------------------------------------
-
-
-def _u(rng: np.random.Generator, lo: float, hi: float) -> float:
-    return float(rng.uniform(lo, hi))
-
-
-def _block(rng: np.random.Generator) -> list[dict]:
-    size = [_u(rng, 0.3, 1.0), _u(rng, 0.3, 1.0), _u(rng, 0.3, 1.0)]
-    if rng.random() < 0.4:  # a thin plate
-        size[int(rng.integers(3))] = _u(rng, 0.04, 0.1)
-    return [{"type": "box", "size": size, "location": [0, 0, size[2] / 2]}]
-
-
-def _ball(rng: np.random.Generator) -> list[dict]:
-    return [{"type": "sphere", "radius": 0.5, "location": [0, 0, 0.5]}]
-
-
-def _can(rng: np.random.Generator) -> list[dict]:
-    r, h = (_u(rng, 0.03, 0.07), 1.0) if rng.random() < 0.4 else (_u(rng, 0.2, 0.5), _u(rng, 0.4, 1.0))  # a thin rod or a can
-    return [{"type": "cylinder", "radius": r, "height": h, "location": [0, 0, h / 2]}]
-
-
-def _cone(rng: np.random.Generator) -> list[dict]:
-    r, h = _u(rng, 0.25, 0.5), _u(rng, 0.5, 1.0)
-    return [{"type": "cone", "radius": r, "height": h, "location": [0, 0, h / 2]}]
-
-
-def _ring(rng: np.random.Generator) -> list[dict]:
-    R = 0.4
-    r = R * _u(rng, 0.12, 0.45)
-    standing = rng.random() < 0.5  # a hoop standing on its rim, or a ring lying flat
-    return [{"type": "torus", "major_radius": R, "minor_radius": r,
-             "location": [0, 0, R + r if standing else r], "rotation": [90, 0, 0] if standing else [0, 0, 0]}]
-
-
-def _cup(rng: np.random.Generator) -> list[dict]:
-    r, h, wall = _u(rng, 0.25, 0.45), _u(rng, 0.4, 1.0), _u(rng, 0.03, 0.08)
-    flare = _u(rng, 1.0, 1.3)
-    profile = [[0, 0], [r, 0], [r * flare, h], [r * flare - wall, h], [r - wall, wall], [0, wall]]
-    return [{"type": "lathe", "profile": profile}]
-
-
-def _vase(rng: np.random.Generator) -> list[dict]:
-    r0, r1, r2, h = _u(rng, 0.15, 0.3), _u(rng, 0.3, 0.5), _u(rng, 0.08, 0.2), _u(rng, 0.6, 1.0)
-    profile = [[0, 0], [r0, 0], [r1, 0.4 * h], [r2, 0.85 * h], [r2 * 1.3, h], [0, h]]
-    return [{"type": "lathe", "profile": profile}]
-
-
-def _washer(rng: np.random.Generator) -> list[dict]:
-    ro, t = 0.5, _u(rng, 0.05, 0.25)
-    ri = ro * _u(rng, 0.3, 0.7)
-    return [{"type": "lathe", "profile": [[ri, 0], [ro, 0], [ro, t], [ri, t]]}]
-
-
-def _table(rng: np.random.Generator) -> list[dict]:
-    w, d, h, top, leg = _u(rng, 0.6, 1.0), _u(rng, 0.4, 0.8), _u(rng, 0.4, 0.8), _u(rng, 0.03, 0.07), _u(rng, 0.02, 0.05)
-    parts = [{"type": "box", "size": [w, d, top], "location": [0, 0, h - top / 2]}]
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            parts.append({"type": "cylinder", "radius": leg, "height": h - top,
-                          "location": [sx * (w / 2 - 2 * leg), sy * (d / 2 - 2 * leg), (h - top) / 2]})
-    return parts
-
-
-def _arch(rng: np.random.Generator) -> list[dict]:
-    w, h, t, d = _u(rng, 0.5, 1.0), _u(rng, 0.5, 1.0), _u(rng, 0.06, 0.15), _u(rng, 0.1, 0.3)
-    return [{"type": "box", "size": [t, d, h], "location": [-(w - t) / 2, 0, h / 2]},
-            {"type": "box", "size": [t, d, h], "location": [(w - t) / 2, 0, h / 2]},
-            {"type": "box", "size": [w, d, t], "location": [0, 0, h + t / 2]}]
-
-
-def _lamp(rng: np.random.Generator) -> list[dict]:
-    rb, tb, rod, h, shade = _u(rng, 0.15, 0.3), _u(rng, 0.03, 0.06), _u(rng, 0.015, 0.03), _u(rng, 0.5, 0.9), _u(rng, 0.15, 0.3)
-    return [{"type": "cylinder", "radius": rb, "height": tb, "location": [0, 0, tb / 2]},
-            {"type": "cylinder", "radius": rod, "height": h, "location": [0, 0, tb + h / 2]},
-            {"type": "cone", "radius": shade, "height": shade, "location": [0, 0, tb + h]}]
-
-
-def _l_shape(rng: np.random.Generator) -> list[dict]:
-    a, b, t, d = _u(rng, 0.5, 1.0), _u(rng, 0.4, 0.9), _u(rng, 0.1, 0.25), _u(rng, 0.2, 0.6)
-    return [{"type": "box", "size": [a, d, t], "location": [a / 2, 0, t / 2]},
-            {"type": "box", "size": [t, d, b], "location": [t / 2, 0, b / 2]}]
-
-
-#: The vocabulary; names become the movers' names (with an index).
-SHAPES: dict[str, Callable[[np.random.Generator], list[dict]]] = {
-    "block": _block, "ball": _ball, "can": _can, "cone": _cone, "ring": _ring, "cup": _cup, "vase": _vase,
-    "washer": _washer, "table": _table, "arch": _arch, "lamp": _lamp, "l-shape": _l_shape,
-}
-
-
-def _scaled_part(p: dict, s: float, shift: np.ndarray) -> dict:
-    """Part dict ``p`` scaled by ``s`` about the object origin after translating by ``shift``."""
-    out = {k: v for k, v in p.items()}
-    out["location"] = [float(x) for x in (np.asarray(p.get("location", [0, 0, 0]), dtype=np.float64) + shift) * s]
-    for k in ("radius", "height", "major_radius", "minor_radius"):
-        if k in p:
-            out[k] = float(p[k] * s)
-    if "size" in p:
-        out["size"] = [float(x * s) for x in p["size"]]
-    if "profile" in p:
-        out["profile"] = [[float(r * s), float(z * s)] for r, z in p["profile"]]
-    return out
-
-
-def _normalised(parts: list[dict], size: float) -> list[dict]:
-    """Parts moved so that the tessellated object's base is at z = 0 and its footprint centred at
-    the origin, and scaled so that its largest extent is ``size`` (the meshes the renderer and the
-    room check use, so a floor mover touches the floor exactly)."""
-    def mesh_bounds(ps: list[dict]) -> np.ndarray:
-        meshes = [_part_mesh(p) for p in ps]
-        return np.array([np.min([m.bounds[0] for m in meshes], axis=0), np.max([m.bounds[1] for m in meshes], axis=0)])
-
-    lo, hi = mesh_bounds(parts)
-    shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
-    out = [_scaled_part(p, size / float(np.max(hi - lo)), shift) for p in parts]
-    base = mesh_bounds(out)[0][2]  # tessellation rounding after the scale
-    for p in out:
-        p["location"][2] -= float(base)
-    return out
-
-
-def _colour_pair(rng: np.random.Generator) -> list[list[float]]:
-    """Two colours that differ in brightness, so every surface has texture to match; drawn
-    uniformly in display (sRGB) values and stored linear, as the spec's colours are."""
-    a = rng.uniform(0.05, 0.95, 3)
-    b = rng.uniform(0.05, 0.95, 3)
-    if abs(a.mean() - b.mean()) < 0.3:
-        b = np.clip(1.0 - a + rng.uniform(-0.1, 0.1, 3), 0.05, 0.95)
-    return [[round(float(x) ** 2.2, 4) for x in c] for c in (a, b)]
-
-
-def _texture(rng: np.random.Generator, scale: float) -> dict:
-    return {"kind": str(rng.choice(TEXTURE_KINDS)), "colors": _colour_pair(rng), "scale": round(scale, 3)}
-
-
-# ------------------------------------------------------------------------------------------------
 # The draw.
 # ------------------------------------------------------------------------------------------------
 
@@ -298,18 +160,13 @@ def _mesh(parts: list[dict]):
     """The tessellated parts as one mesh (the object's render mesh, as ``geometry`` builds it)."""
     import trimesh
 
-    return trimesh.util.concatenate([_part_mesh(p) for p in parts])
+    return trimesh.util.concatenate([part_dict_mesh(p) for p in parts])
 
 
 def _sphere(verts: np.ndarray) -> tuple[np.ndarray, float]:
     """Bounding sphere (centre in the object frame, radius) of object-frame vertices."""
     c = (verts.min(axis=0) + verts.max(axis=0)) / 2
     return c, float(np.linalg.norm(verts - c, axis=1).max())
-
-
-def _part_mesh(p: dict):
-    return part_mesh(Part(p["type"], {k: p[k] for k in p if k not in ("type", "location", "rotation")},
-                          p.get("location", [0, 0, 0]), p.get("rotation", [0, 0, 0])))
 
 
 def _centres(motion: list[dict], centre: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -324,7 +181,7 @@ def _mover(rng: np.random.Generator, i: int, on_floor: bool, rig: dict, mids: li
     eye, forward = _mid_camera(rig)
     shape = str(rng.choice(list(SHAPES)))
     size = float(math.exp(_u(rng, math.log(SIZE_RANGE[0]), math.log(SIZE_RANGE[1]))))
-    parts = _normalised(SHAPES[shape](rng), size)
+    parts = normalised(SHAPES[shape](rng), size)
     depth = _u(rng, max(0.8, 1.5 * size + 0.5), max(1.0, min(4.0, 5.5 * size + 0.6)))
     if mids and rng.random() < 0.5:  # across the line of sight of an earlier mover, in front or behind
         other = mids[int(rng.integers(len(mids)))]
@@ -342,7 +199,7 @@ def _mover(rng: np.random.Generator, i: int, on_floor: bool, rig: dict, mids: li
     else:
         base = np.array([mid[0], mid[1], float(np.clip(mid[2], 0.15 + half, 2.2)) - half])
     scale = float(np.clip(_u(rng, 3, 8) * math.sqrt(0.8 / size), 2.0, 14.0))
-    obj = {"name": f"{shape}-{i}", "parts": parts, "texture": _texture(rng, scale),
+    obj = {"name": f"{shape}-{i}", "parts": parts, "texture": texture(rng, scale),
            "motion": _motion(rng, base - travel / 2, base + travel / 2, on_floor)}
     return obj, base + [0, 0, half]
 
@@ -442,7 +299,7 @@ def _draw(rng: np.random.Generator, seed: int, protocol: str, n: int) -> dict:
         mids.append(mid)
         swept.append((path, r))
     room = {"size": [round(float(x), 3) for x in room_size],
-            "floor": _texture(rng, _u(rng, 1.5, 3.0)), "walls": _texture(rng, _u(rng, 1.2, 2.5))}
+            "floor": texture(rng, _u(rng, 1.5, 3.0)), "walls": texture(rng, _u(rng, 1.2, 2.5))}
     return {"name": f"random-{seed}", "room": room, "objects": objects, "rig": rig, "samples": 1,
             "configs": DEFAULTS["configs"], "resolution": [DEFAULTS["resolution"]] * 2, "seed": seed}
 
