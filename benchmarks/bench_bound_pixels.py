@@ -42,7 +42,7 @@ def exact_depths(data: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     every object rendered alone (``inf`` where it does not cover the pixel), ``ids (T, H, W)``,
     and the objects' names (index = dataset id)."""
     from benchgen.render.blender import Renderer
-    from benchgen.render.generate import render_with_alone_depths
+    from benchgen.render.workers import render_with_alone_depths
     from benchgen.scene.geometry import build_scene
     from benchgen.scene.spec import read_spec_yaml, spec_from_dict
 

@@ -20,7 +20,8 @@ from scenecore import dataset as D
 from scenecore.cameras import pixel_rays
 from benchgen.cli import main as cli_main
 from benchgen.scene.configs import choose_configurations
-from benchgen.render.generate import Task, Worker, generate, prepare, verify_dataset
+from benchgen.render.generate import generate, prepare, verify_dataset
+from benchgen.render.workers import Task, Worker
 from benchgen.scene.plausibility import PlausibilityChecker, room_scale_limits
 from benchgen.scene.spec import PRESET_DIR, SpecError, load_preset, load_spec, spec_from_dict
 from scenecore.validity import ValidRegion
