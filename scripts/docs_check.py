@@ -30,7 +30,11 @@ HEX = re.compile(r"(?<![0-9A-Za-z_./-])[0-9a-f]{7,40}(?![0-9A-Za-z_])")
 LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 FENCE = re.compile(r"^\s*(```|~~~)")
 GENERATED = re.compile(r"<!-- generated: .*?<!-- end generated -->", re.S)
+#: An experiment cited by its path (code, docstrings): its file name begins with its date.
 EXPERIMENT_PATH = re.compile(r"experiments/(?:19|20)\d\d-[01]\d-[0-3]\d-[a-z0-9-]+\.md")
+#: A link target citing an experiment file: its file name begins with its date, which is a citation
+#: there; the same date in the link text or the prose is history.
+EXPERIMENT_TARGET = re.compile(r"(\]\(\s*<?[^)\s]*experiments/)(?:19|20)\d\d-[01]\d-[0-3]\d-([a-z0-9-]+\.md)")
 RESULTS_ROW = re.compile(r"^\s*\|.*(±|\d\s?dB\b)")
 
 
@@ -115,10 +119,12 @@ def link_problems(root: Path = REPO) -> list[str]:
     return out
 
 
-def _history_problems(rel: Path, text: str) -> list[str]:
+def _history_problems(rel: Path, text: str, markdown: bool = False) -> list[str]:
+    """Dates and commit hashes in ``text``, but in generated blocks and in citations of an
+    experiment file: its path in code, a link's target in Markdown (the link text shows no date)."""
     out = []
     text = GENERATED.sub(lambda m: "\n" * m.group(0).count("\n"), text)
-    text = EXPERIMENT_PATH.sub("experiments/FILE", text)  # an experiment's file name is its date: a citation
+    text = EXPERIMENT_TARGET.sub(r"\1\2", text) if markdown else EXPERIMENT_PATH.sub("experiments/FILE", text)
     for n, ln in enumerate(text.splitlines(), 1):
         for m in DATE.finditer(ln):
             out.append(f"{rel}:{n}: date {m.group(0)} (history goes in docs/experiments/)")
@@ -136,7 +142,7 @@ def reference_problems(root: Path = REPO) -> list[str]:
             continue
         rel = md.relative_to(root)
         text = md.read_text()
-        out += _history_problems(rel, text)
+        out += _history_problems(rel, text, markdown=True)
         bare = GENERATED.sub(lambda m: "\n" * m.group(0).count("\n"), text)
         fenced = False
         for n, ln in enumerate(bare.splitlines(), 1):

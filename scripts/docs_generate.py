@@ -49,6 +49,12 @@ CATEGORY = re.compile(r"(?:(?P<kind>paper|addition) \((?P<cite>[^()]*)\)|(?P<inf
 #: What a ``paper (...)`` category must name: a section, an equation or the appendix.
 PAPER_CITE = re.compile(r"\b(?:Sec\.|Eq\.|appendix)")
 EXPERIMENT_CITE = re.compile(r"experiments/(?P<name>\d{4}-\d{2}-\d{2}-[a-z0-9-]+\.md)")
+
+
+def experiment_title(file_name: str) -> str:
+    """A link text for an experiment file: its name without the date and ``.md`` (the date is the
+    file's, history; the reference text cites the experiment, not when it ran)."""
+    return re.sub(r"^\d{4}-\d{2}-\d{2}-", "", file_name).removesuffix(".md")
 NOT_MEASURED = "not measured"
 
 
@@ -58,7 +64,8 @@ def markdown_files(root: Path = REPO) -> list[Path]:
 
 
 def provenance(doc: dict) -> str:
-    """One line: what was run, on which commit and machine, when."""
+    """One line: what was run, on which commit and machine, and how long it took (the date stays in
+    the results JSON: reference docs hold no history)."""
     m = doc["machine"]
     commit = doc["commit"][:10] + (" with local changes" if doc.get("dirty") else "")
     wall = (doc.get("data") or {}).get("wall_seconds")
@@ -68,8 +75,7 @@ def provenance(doc: dict) -> str:
     # What else ran, when the figures were not taken on a quiet machine (a results JSON's own words).
     conditions = (doc.get("data") or {}).get("conditions")
     took += f"; {conditions}" if isinstance(conditions, str) and conditions else ""
-    return (f"*`{doc['command']}` on commit {commit}, {m['cpu']} ({m['cores']} cores), "
-            f"{doc['time'][:10]}{took}.*")
+    return f"*`{doc['command']}` on commit {commit}, {m['cpu']} ({m['cores']} cores){took}.*"
 
 
 def render_table(doc: dict, name: str, src: str) -> str:
@@ -207,7 +213,7 @@ def render_options(root: Path = REPO, base: Path | None = None) -> str:
         elif m["kind"] == "paper" or m["cite"].strip() == NOT_MEASURED:
             category = f"{m['kind']} ({_markdown(m['cite'])})"
         else:
-            links = [f"[{e['name'][:-3]}]({os.path.relpath(root / 'docs' / 'experiments' / e['name'], base)})"
+            links = [f"[{experiment_title(e['name'])}]({os.path.relpath(root / 'docs' / 'experiments' / e['name'], base)})"
                      for e in EXPERIMENT_CITE.finditer(m["cite"])]
             category = f"addition ({', '.join(links)})"
         default = f"`{_markdown(o.default)}`" if o.default else ""

@@ -131,9 +131,14 @@ def test_broken_links_and_anchors_are_found(tree: Path) -> None:
 
 def test_history_in_reference_docs_is_found(tree: Path) -> None:
     ref = tree / "docs" / "ref.md"
-    cite = "Measured in [experiments/2026-01-02-a-test.md](experiments/2026-01-02-a-test.md)."
+    cite = "Measured in [a-test](experiments/2026-01-02-a-test.md)."
     ref.write_text(ref.read_text() + f"\n{cite}\n")
     assert check.reference_problems(tree) == []  # citing an experiment by its file name is not history
+    dated = tree / "docs" / "dated.md"  # the same file name shown as the link's text is a date in the prose
+    dated.write_text("# D\n\n[experiments/2026-01-02-a-test.md](experiments/2026-01-02-a-test.md)\n")
+    assert [f for f in check.reference_problems(tree) if "dated.md" in f] == [
+        "docs/dated.md:3: date 2026-01-02 (history goes in docs/experiments/)"]
+    dated.unlink()
     ref.write_text(ref.read_text() + "\nMeasured on 2026-11-27 at 6c94564.\n\n| a | 23.1 ± 0.2 |\n")
     found = check.reference_problems(tree)
     assert any("date 2026-11-27" in f for f in found) and any("hash 6c94564" in f for f in found)

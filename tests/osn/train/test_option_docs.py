@@ -164,8 +164,7 @@ def test_the_options_block_is_generated_and_stale_when_a_docstring_changes(tree:
     assert generate.stale(tree) == []
     text = doc.read_text()
     assert "| `seed` | `0` | infrastructure | the seed. Neutral: none. |" in text
-    stem = Path("experiments/2026-01-02-a-test.md").stem
-    assert (f"| `w_x` | `auto` | addition ([{stem}](experiments/2026-01-02-a-test.md)) | a term; `auto`: "
+    assert (f"| `w_x` | `auto` | addition ([a-test](experiments/2026-01-02-a-test.md)) | a term; `auto`: "
             "0.5 (`K`). Neutral: 0 \\| off. |") in text
     assert '| `field.resolution` | `64` | paper (appendix "Details of Networks") | voxels. Neutral: none. |' in text
     config = tree / "osn" / "train" / "config.py"
