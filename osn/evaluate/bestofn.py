@@ -183,9 +183,8 @@ def evaluate(
     t0 = time.perf_counter()
     table = {f"best of {len(samples.sbar)}": _table_row(res)}
     by_object = {f"best of {len(samples.sbar)}": res.by_object}
-    for name, sbar in single_solutions(samples).items():  # each the only candidate against all G
-        rendered[name] = RenderedCandidates(run, truth, {name.replace(" ", "-"): sbar})
-        res_single = score(truth, rendered[name], cfg.lpips)
+    for name, (cands, res_single) in _single_solution_scores(run, samples, truth, cfg.lpips).items():
+        rendered[name] = cands
         table[name], by_object[name] = _table_row(res_single), res_single.by_object
     timings["baselines_s"] = time.perf_counter() - t0
     true_extra: dict[str, Any] = {}
@@ -195,9 +194,7 @@ def evaluate(
             rendered.clear()  # renders are kept only to be written: free them before G more
         rendered[TRUE_SCALES], res_true = true_scales_candidates(run, truth, cfg.lpips)
         table[TRUE_SCALES], by_object[TRUE_SCALES] = _table_row(res_true), res_true.by_object
-        own = [r["match_index"] == g for g, r in enumerate(res_true.per_ground_truth)]
-        true_extra = {"true_scales_psnr": [r["psnr"] for r in res_true.per_ground_truth],
-                      "true_scales_own_match": float(np.mean(own))}
+        true_extra = _true_scales_extra(res_true)
         timings["true_scales_s"] = time.perf_counter() - t0
     if candidates_dir is not None:
         write_candidates(rendered, Path(candidates_dir), len(samples.sbar))
@@ -216,11 +213,39 @@ def evaluate(
     valid = valid_set_accuracy(run, region, cfg.valid_points, cfg.seed)
     curves = evaluation_curves(run, samples, truth, res.matrix, cand, cfg.levels)
     curves["validity_profile"] = widest_object_profile(run, region, truth.scales)
+    extra = {**_run_extra(run, samples, truth, approx_mean, cand, match), **true_extra,
+             "error_by_object": by_object, "provenance": prov.record}
+    return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra, prov.files)
+
+
+def _single_solution_scores(run: TrainedRun, samples: Samples, truth: Truth,
+                            with_lpips: bool) -> dict[str, tuple[RenderedCandidates, ScoreResult]]:
+    """Each baseline of :func:`single_solutions` rendered and scored as the only candidate
+    against all G ground truths."""
+    out = {}
+    for name, sbar in single_solutions(samples).items():
+        cands = RenderedCandidates(run, truth, {name.replace(" ", "-"): sbar})
+        out[name] = (cands, score(truth, cands, with_lpips))
+    return out
+
+
+def _true_scales_extra(res_true: ScoreResult) -> dict[str, Any]:
+    """The "true scales" row's per-ground-truth PSNR, and how often each ground truth's own
+    render is its best match."""
+    own = [r["match_index"] == g for g, r in enumerate(res_true.per_ground_truth)]
+    return {"true_scales_psnr": [r["psnr"] for r in res_true.per_ground_truth], "true_scales_own_match": float(np.mean(own))}
+
+
+def _run_extra(run: TrainedRun, samples: Samples, truth: Truth, approx_mean: np.ndarray, cand: np.ndarray,
+               match: np.ndarray) -> dict[str, Any]:
+    """What the report says of the evaluation itself: its sizes, how far the layered estimate's
+    matches ``approx_mean (N, G)`` agree with the exact ones ``match (G,)`` among the rendered
+    ``cand (C,)``, the sampler's fallbacks, and what the run could not place."""
     approx_match = np.nanargmax(np.nan_to_num(approx_mean, nan=-np.inf), axis=0)
-    extra = {
+    return {
         "num_samples": int(len(samples.sbar)),
-        "num_gt": G,
-        "num_views": V,
+        "num_gt": truth.num_configurations,
+        "num_views": truth.num_views,
         "views": [f.name for f in truth.frames],
         "covisible_fraction": float(truth.mask.mean()),
         "candidates_rendered_exactly": int(len(cand)),
@@ -229,11 +254,7 @@ def evaluate(
         "samples_by_hit_and_run": samples.chained,
         **ground_truth_outside_box(run, truth.scales),
         **unposed_object_pixels(run, truth),
-        **true_extra,
-        "error_by_object": by_object,
-        "provenance": prov.record,
     }
-    return EvalResult(table, per_gt, valid, scale_err, curves, timings, extra, prov.files)
 
 
 def true_scales_candidates(run: TrainedRun, truth: Truth, with_lpips: bool) -> tuple[RenderedCandidates, ScoreResult]:
