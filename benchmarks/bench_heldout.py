@@ -79,10 +79,11 @@ UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
 def seed_work(root: Path, seed: Scene, base: str, label: str, source: str) -> None:
     """Start ``SCENE/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
     and outputs (hard links where the file system allows), so ``osn demo`` resumes at training."""
-    src = scene_dir(root, seed) / f"{base}-{source}"
+    here = scene_dir(root, seed)
+    src = here / f"{base}-{source}"
     if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
         raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
-    dst = scene_dir(root, seed) / f"{label}-{source}"
+    dst = here / f"{label}-{source}"
     if (dst / ".done").is_dir():
         return
     tmp = dst.with_name(dst.name + ".part")
@@ -95,7 +96,7 @@ def seed_work(root: Path, seed: Scene, base: str, label: str, source: str) -> No
     for d in UPSTREAM_DIRS:
         if (src / d).is_dir():
             shutil.copytree(src / d, tmp / d, copy_function=_link_or_copy)
-    (tmp / "dataset").symlink_to((scene_dir(root, seed) / "dataset").resolve(), target_is_directory=True)
+    (tmp / "dataset").symlink_to((here / "dataset").resolve(), target_is_directory=True)
     tmp.rename(dst)
 
 
@@ -138,7 +139,7 @@ def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str
     """``osn demo`` of one seed from one source on its dataset (already generated); its figures (or ``error``)."""
     t0 = time.perf_counter()
     dataset = scene_dir(root, seed) / "dataset"
-    work = scene_dir(root, seed) / f"{label}-{source}"
+    work = dataset.parent / f"{label}-{source}"
     work.mkdir(parents=True, exist_ok=True)
     link = work / "dataset"
     if not link.exists():

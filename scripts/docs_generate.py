@@ -207,10 +207,11 @@ def render_options(root: Path = REPO, base: Path | None = None) -> str:
     counts = {"paper": 0, "addition": 0, "infrastructure": 0}
     for name, o in all_options(root):
         m = CATEGORY.match(o.doc.strip())
-        counts["infrastructure" if m["infra"] else m["kind"]] += 1
-        if m["infra"]:
-            category = "infrastructure"
-        elif m["kind"] == "paper" or m["cite"].strip() == NOT_MEASURED:
+        kind = "infrastructure" if m["infra"] else m["kind"]
+        counts[kind] += 1
+        if kind == "infrastructure":
+            category = kind
+        elif kind == "paper" or m["cite"].strip() == NOT_MEASURED:
             category = f"{m['kind']} ({_markdown(m['cite'])})"
         else:
             links = [f"[{experiment_title(e['name'])}]({os.path.relpath(root / 'docs' / 'experiments' / e['name'], base)})"
