@@ -100,13 +100,17 @@ class SceneTensors:
         self.sp_depth, self.sp_obj = cat(sp_depth, torch.float32), cat(sp_obj, torch.long)
 
     def free_pixels(self, band: int, object_band: int | None = None,
-                    in_front: frozenset[tuple[int, int]] = frozenset()) -> list[torch.Tensor]:
+                    in_front: frozenset[tuple[int, int]] = frozenset(),
+                    constrained: frozenset[tuple[int, int]] | None = None) -> list[torch.Tensor]:
         """Per object the flat indices of pixels its field must leave empty, in frames where it
         is present: pixels showing the anchor or nothing within ``band`` pixels of its mask
         (objects are never behind the anchor, e.g. a room that contains them), and, for every
         object but the anchor, other objects' pixels within ``object_band`` pixels of its mask
         (default ``band``), except those of j for object positions ``(j, k)`` in ``in_front``
-        (j in front of k: k may be hidden there).
+        (j in front of k: k may be hidden there) and, once a label pool exists (``constrained``:
+        the pairs ``(i, j)`` it holds rays of; None before the first), those of every j it holds
+        no ray of with k in either order: no field bleeds there, and carving would keep emptying
+        what k hides behind j, the only place the pair's bound can be read.
         """
         T, H, W = self.T, self.H, self.W
         lab = self.labels.reshape(T, H, W)
@@ -119,7 +123,10 @@ class SceneTensors:
             if k != self.anchor and object_band > 0:
                 close = F.max_pool2d(mask, 2 * object_band + 1, stride=1, padding=object_band)[:, 0] > 0
                 other = (lab >= 0) & (lab != k)
-                for j in sorted(j for j, behind in in_front if behind == k and j != self.anchor):
+                spared = {j for j, behind in in_front if behind == k}
+                if constrained is not None:
+                    spared |= {j for j in range(self.K) if (j, k) not in constrained and (k, j) not in constrained}
+                for j in sorted(spared - {k, self.anchor}):
                     other &= lab != j
                 free |= close & other
             keep = free & self.present[k][:, None, None] & ~self.ignored.reshape(T, H, W)

@@ -90,6 +90,9 @@ class Trainer:
         self.bg = torch.tensor(cfg.background, device=device)
         # (j, k): j in front of k by the last label pool; the free-space term stops carving j's pixels for k
         self.in_front: frozenset[tuple[int, int]] = frozenset()
+        # The pairs (i, j) the last label pool holds rays of (None before the first): it stops
+        # carving the pixels of objects it holds no ray of with k (SceneTensors.free_pixels).
+        self.constrained: frozenset[tuple[int, int]] | None = None
         self.free = self._free_pixels()
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
         self.hidden_strips = self.st.hidden_anchor_strips(HIDDEN_STRIP_LENGTH) if cfg.w_hidden_smooth > 0 else None
@@ -121,6 +124,7 @@ class Trainer:
             "anchor_guide": self.st.guide,  # resolved: what `auto` gives may change, what trained may not
             "depth_consistency": self.depth_consistency.record(),  # what the other `auto`s read (a record)
             "in_front": sorted(self.in_front),
+            "constrained": None if self.constrained is None else sorted(self.constrained),
             "fields": [f.state_dict() for f in self.fields],
             "field_opt": self.field_opt.state_dict(),
             "net": self.net.state_dict() if self.net is not None else None,
@@ -150,7 +154,9 @@ class Trainer:
             self.net.load_state_dict(s["net"])
             self.net_opt.load_state_dict(s["net_opt"])
         self.st.guide = checkpoint_anchor_guide_samples(s, self.source)
-        self._set_in_front(frozenset(tuple(p) for p in s.get("in_front", [])))
+        constrained = s.get("constrained")
+        self._set_pool_pairs(frozenset(tuple(p) for p in s.get("in_front", [])),
+                             None if constrained is None else frozenset(tuple(p) for p in constrained))
         self.gen.set_state(s["gen"].cpu())
         torch.set_rng_state(s["torch_rng"].cpu())
 
@@ -331,7 +337,8 @@ class Trainer:
         if self.cache_key != phase.start:
             self.cache = build_label_pool(self.st, self.fields, self.cfg, phase.start)
             self.cache_key = phase.start
-            self._set_in_front(in_front_pairs(self.cache["constraints"].pairs))
+            pairs = self.cache["constraints"].pairs
+            self._set_pool_pairs(in_front_pairs(pairs), frozenset(pairs))
 
     def _free_pixels(self) -> list[torch.Tensor]:
         """Each object's free pixels under the config and the pairs' order known so far (none
@@ -339,12 +346,13 @@ class Trainer:
         cfg = self.cfg
         if cfg.w_free <= 0:
             return [torch.zeros(0, dtype=torch.long, device=self.device) for _ in range(self.st.K)]
-        return self.st.free_pixels(cfg.free_band, cfg.free_band_objects, self.in_front)
+        return self.st.free_pixels(cfg.free_band, cfg.free_band_objects, self.in_front, self.constrained)
 
-    def _set_in_front(self, pairs: frozenset[tuple[int, int]]) -> None:
-        """Object pairs ``(j, k)`` with j in front of k; the free pixels follow them."""
-        if pairs != self.in_front:
-            self.in_front = pairs
+    def _set_pool_pairs(self, in_front: frozenset[tuple[int, int]], constrained: frozenset[tuple[int, int]] | None) -> None:
+        """What a label pool says of the pairs: ``(j, k)`` with j in front of k, and every pair
+        it holds rays of (None: no pool yet); the free pixels follow them."""
+        if (in_front, constrained) != (self.in_front, self.constrained):
+            self.in_front, self.constrained = in_front, constrained
             self.free = self._free_pixels()
 
     def _scale_samples(self) -> torch.Tensor:

@@ -192,6 +192,26 @@ def test_free_pixels_spare_the_pixels_of_an_object_in_front(tiny_dataset: Path) 
     assert len(ordered[k]) < len(objects[k])  # the tiny scene's two objects meet in some frame
 
 
+def test_free_pixels_spare_the_pixels_of_objects_the_pool_holds_no_ray_with(tiny_dataset: Path) -> None:
+    """Once a label pool exists, an object is no longer carved on the pixels of an object it
+    shares no pool ray with (either order): k may hide there, and the pair's bound lies there.
+    Before the first pool (None), and for pairs the pool holds rays of, nothing changes."""
+    st = SceneTensors(oracle_inputs(tiny_dataset), torch.device("cpu"))
+    lab = st.labels.reshape(-1)
+    objects = st.free_pixels(4, 1)
+    j, k = [i for i in range(st.K) if i != st.anchor]
+    before = st.free_pixels(4, 1, frozenset(), None)
+    assert all(torch.equal(a, b) for a, b in zip(before, objects))
+    for seen in ({(j, k)}, {(k, j)}, {(j, k), (k, j)}):  # the pair has rays, in either order
+        same = st.free_pixels(4, 1, frozenset(), frozenset(seen | {(j, st.anchor), (k, st.anchor)}))
+        assert all(torch.equal(a, b) for a, b in zip(same, objects))
+    apart = st.free_pixels(4, 1, frozenset(), frozenset({(j, st.anchor), (k, st.anchor)}))
+    for a, b in ((j, k), (k, j)):
+        assert torch.equal(apart[a], objects[a][lab[objects[a]] != b])
+        assert len(apart[a]) < len(objects[a])  # the tiny scene's two objects meet in some frame
+    assert torch.equal(apart[st.anchor], objects[st.anchor])  # the anchor's pixels stay carved
+
+
 def test_ordered_free_space_follows_the_label_pool_and_resumes(tiny_dataset: Path) -> None:
     """The first scale phase's pool sets which pairs are in front, the free pixels follow, and a
     checkpoint brings both back."""
@@ -200,19 +220,20 @@ def test_ordered_free_space_follows_the_label_pool_and_resumes(tiny_dataset: Pat
     cfg = _cfg(stage1_iters=200)  # after 30 steps no ray is contested yet
     tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
     objects = [f.clone() for f in tr.free]
-    assert tr.in_front == frozenset()
+    assert tr.in_front == frozenset() and tr.constrained is None
     while tr.phase(tr.iteration).name != "scale":
         tr.step()
     tr.step()
     assert tr.in_front == in_front_pairs(tr.cache["constraints"].pairs)
+    assert tr.constrained == frozenset(tr.cache["constraints"].pairs)
     behind = [k for j, k in tr.in_front if tr.st.anchor not in (j, k)]
     assert behind  # the tiny scene's two objects: one is in front of the other (measured: 1 of 2)
-    expected = tr.st.free_pixels(cfg.free_band, cfg.free_band_objects, tr.in_front)
+    expected = tr.st.free_pixels(cfg.free_band, cfg.free_band_objects, tr.in_front, tr.constrained)
     assert all(torch.equal(a, b) for a, b in zip(tr.free, expected))
     assert all(len(tr.free[k]) < len(objects[k]) for k in behind)
     back = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
     back.load_state_dict(tr.state_dict())
-    assert back.in_front == tr.in_front and all(torch.equal(a, b) for a, b in zip(back.free, tr.free))
+    assert back.in_front == tr.in_front and back.constrained == tr.constrained and all(torch.equal(a, b) for a, b in zip(back.free, tr.free))
 
 
 def test_free_space_loss_stops_objects_bleeding_past_their_silhouette(tiny_dataset: Path) -> None:
