@@ -168,8 +168,8 @@ class TrainConfig:
     per step, so objects do not bleed past their silhouettes. An object's free pixels
     (``osn.train.tensors.SceneTensors.free_pixels``) show the anchor or nothing within
     ``free_band`` of its mask, or, for objects but the anchor, another object within
-    ``free_band_objects``, except objects the last label pool put in front of it or holds no ray
-    of with it. Unit: loss weight. Neutral: 0 (term off)."""
+    ``free_band_objects``, except objects the last label pool put in front of it or, holding
+    rays of both, holds none of the pair. Unit: loss weight. Neutral: 0 (term off)."""
     w_distortion: float = 0.03
     """addition (experiments/2026-11-26-seed-spread-distortion.md): Weight of mip-NeRF 360's
     distortion loss on an object's own pixels in stage 1 (how spread the weights are along the
@@ -203,8 +203,8 @@ class TrainConfig:
     """addition (experiments/2026-11-25-valid-set-scene-suite.md,
     experiments/2026-11-28-schedule-and-metrics-as-measured.md): How far from an object's mask
     another object's pixel may lie to be one of its free pixels (``w_free``; objects but the
-    anchor, and, once a label pool exists, only the pixels of objects it holds rays of with the
-    object and did not put in front), for gaps the grid cannot resolve. Unit: pixels. Neutral: 0
+    anchor; once a label pool holds rays of both objects, only if it holds rays of the pair and
+    did not put the other in front), for gaps the grid cannot resolve. Unit: pixels. Neutral: 0
     (only the anchor's pixels and empty ones are free)."""
     scale_lr: float = 5e-3
     """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): The scale

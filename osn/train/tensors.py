@@ -109,8 +109,10 @@ class SceneTensors:
         (default ``band``), except those of j for object positions ``(j, k)`` in ``in_front``
         (j in front of k: k may be hidden there) and, once a label pool exists (``constrained``:
         the pairs ``(i, j)`` it holds rays of; None before the first), those of every j it holds
-        no ray of with k in either order: no field bleeds there, and carving would keep emptying
-        what k hides behind j, the only place the pair's bound can be read.
+        no ray of with k in either order though it holds rays of both j and k with other objects:
+        both fields are opaque enough for the pool to see them, so no field bleeds there, and
+        carving would keep emptying what k hides behind j, the only place the pair's bound can
+        be read. (An object the pool holds no ray of, its field not yet opaque, stays carved.)
         """
         T, H, W = self.T, self.H, self.W
         lab = self.labels.reshape(T, H, W)
@@ -125,7 +127,9 @@ class SceneTensors:
                 other = (lab >= 0) & (lab != k)
                 spared = {j for j, behind in in_front if behind == k}
                 if constrained is not None:
-                    spared |= {j for j in range(self.K) if (j, k) not in constrained and (k, j) not in constrained}
+                    pooled = {i for pair in constrained for i in pair}  # objects the pool sees opaque
+                    if k in pooled:
+                        spared |= {j for j in pooled if (j, k) not in constrained and (k, j) not in constrained}
                 for j in sorted(spared - {k, self.anchor}):
                     other &= lab != j
                 free |= close & other

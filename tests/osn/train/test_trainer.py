@@ -194,8 +194,9 @@ def test_free_pixels_spare_the_pixels_of_an_object_in_front(tiny_dataset: Path) 
 
 def test_free_pixels_spare_the_pixels_of_objects_the_pool_holds_no_ray_with(tiny_dataset: Path) -> None:
     """Once a label pool exists, an object is no longer carved on the pixels of an object it
-    shares no pool ray with (either order): k may hide there, and the pair's bound lies there.
-    Before the first pool (None), and for pairs the pool holds rays of, nothing changes."""
+    shares no pool ray with (either order) while the pool holds rays of both: k may hide there,
+    and the pair's bound lies there. Before the first pool (None), and for pairs the pool holds
+    rays of, nothing changes."""
     st = SceneTensors(oracle_inputs(tiny_dataset), torch.device("cpu"))
     lab = st.labels.reshape(-1)
     objects = st.free_pixels(4, 1)
@@ -210,6 +211,10 @@ def test_free_pixels_spare_the_pixels_of_objects_the_pool_holds_no_ray_with(tiny
         assert torch.equal(apart[a], objects[a][lab[objects[a]] != b])
         assert len(apart[a]) < len(objects[a])  # the tiny scene's two objects meet in some frame
     assert torch.equal(apart[st.anchor], objects[st.anchor])  # the anchor's pixels stay carved
+    # An object the pool holds no ray of (its field not yet opaque) stays carved, and so do the
+    # others on its pixels: the pool could not have seen the pair.
+    unseen = st.free_pixels(4, 1, frozenset(), frozenset({(j, st.anchor)}))
+    assert all(torch.equal(a, b) for a, b in zip(unseen, objects))
 
 
 def test_ordered_free_space_follows_the_label_pool_and_resumes(tiny_dataset: Path) -> None:
