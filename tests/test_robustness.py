@@ -53,7 +53,7 @@ DOC = REPO / "docs" / "robustness.md"
 TINY_TRAIN = {
     "stage1_iters": 6, "rounds": 1, "field_iters": 4, "scale_iters": 4, "final_scale_iters": 4,
     "rays_per_object": 64, "rays": 128, "depth_rays": 16, "samples": 8, "scale_samples": 32,
-    "label_stride": 1, "eval_every": 5, "eval_pixels": 256, "iou_samples": 500,
+    "label_stride": 1, "eval_every": 5,
     "checkpoint_every": 1, "field": {"kind": "dense", "resolution": 12, "initial_resolution": 12, "upsample_steps": 0},
 }
 TINY_TOTAL = 6 + 4 + 4 + 4

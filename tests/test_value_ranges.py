@@ -66,7 +66,7 @@ def test_many_samples_are_drawn_in_bounded_batches(small_run: Path) -> None:
 
 BAD_TRAINING = {
     "w_opacity": math.nan, "w_depth": -5, "skip_occluded": math.nan, "seed": 1.5, "samples": 100_000_000,
-    "rays": 10**9, "iou_samples": 10**10, "background": [0, 0], "device": "gpu", "scale_lr": 0.0,
+    "rays": 10**9, "scale_samples": 10**10, "device": "gpu", "scale_lr": 0.0,
     "w_seg": math.inf,
 }
 

@@ -145,8 +145,7 @@ class TrainedRun:
             raise ValueError(f"cached anchor samples are at scale 1, the configuration has {sbar[self.anchor_pos]}")
         cfg = self.config
         S = n_samples or int(cfg.get("samples", 32))
-        bg = torch.tensor(cfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32, device=self.device)
-        rgb = torch.zeros(H * W, 3, device=self.device) + bg
+        rgb = torch.zeros(H * W, 3, device=self.device)  # black where nothing is opaque, as in training
         depth = torch.full((H * W,), float("inf"), device=self.device)
         acc = torch.zeros(H * W, device=self.device)
         ids = torch.full((H * W,), 255, dtype=torch.long, device=self.device)
@@ -156,7 +155,7 @@ class TrainedRun:
                 dc = dirs[i : i + chunk]
                 R = len(dc)
                 rays = [anchor[c] if anchor and k == self.anchor_pos else self._object_rays(k, pose[k], R) for k in keep]
-                out: RenderOutput = render_by_hits(rays, dc, S, bg, float(cfg.get("skip_occluded", 0.0)))
+                out: RenderOutput = render_by_hits(rays, dc, S, None, float(cfg.get("skip_occluded", 0.0)))
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc
                 depth[i : i + R] = out.normalised_depth(EMPTY_ACC)

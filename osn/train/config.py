@@ -17,8 +17,7 @@ from osn.model.fields import FieldConfig
 from osn.train.run_config import upgrade_run_config
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "candidates", "eval_every", "eval_pixels",
-             "iou_samples", "checkpoint_every")
+_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "free_band", "free_band_objects", "label_stride")
@@ -35,14 +34,7 @@ MAX_SAMPLES_PER_RAY = 4096
 MAX_RAYS = 1 << 20
 MAX_POINTS = 1 << 24
 _SIZED_BY_RAYS = ("rays_per_object", "rays", "depth_rays")
-_SIZED_BY_POINTS = ("scale_samples", "candidates", "eval_pixels", "iou_samples")
-
-
-def _rgb() -> Rule:
-    """Three finite numbers in [0, 1]."""
-    unit = number(0.0, 1.0)
-    return Rule(lambda v: isinstance(v, (tuple, list)) and len(v) == 3 and all(unit.ok(x) for x in v),
-                "three numbers in [0, 1]")
+_SIZED_BY_POINTS = ("scale_samples",)
 
 
 def _device() -> Rule:
@@ -58,7 +50,6 @@ _RULES: dict[str, Rule] = {
     **{name: number(0.0) for name in ("w_depth", "w_seg", "w_opacity", "w_free")},
     "skip_occluded": number(0.0, 1.0, hi_open=True),
     "scale_lr": number(0.0, lo_open=True, what="a positive learning rate"),
-    "background": _rgb(),
     "device": _device(),
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
@@ -247,22 +238,9 @@ class TrainConfig:
     axis; 0 picks the stride that keeps about :data:`AUTO_LABEL_SIDE` pixels along the longer
     image side (:func:`osn.train.auto.label_stride`), which bounds the pool's render cost. Unit:
     pixels. Neutral: 1 (every pixel)."""
-    candidates: int = 4096
-    """paper (Sec. 3.3, below Eq. 4: resample until the score passes the threshold): Scale vectors
-    drawn per field step to find one above :data:`osn.model.scale_net.FIELD_STEP_THRESHOLD`.
-    Unit: scale vectors per step. Neutral: none (at least 1)."""
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """infrastructure: Colour a ray gets where no object is opaque. Unit: RGB, each in [0, 1].
-    Neutral: none."""
     eval_every: int = 200
     """infrastructure: Iterations between two lines of ``metrics.jsonl`` (and one at every phase
     end). Unit: iterations. Neutral: none (at least 1)."""
-    eval_pixels: int = 4096
-    """infrastructure: Fixed training-view pixels of the monitor's PSNR. Unit: pixels. Neutral:
-    none (at least 1)."""
-    iou_samples: int = 20000
-    """infrastructure: Points per stratum of the monitor's valid-set precision, recall and IoU
-    (``scenecore.validity.set_samples``). Unit: points per stratum. Neutral: none (at least 1)."""
     checkpoint_every: int = 250
     """infrastructure: Iterations between checkpoints (one is also written at the end). Unit:
     iterations. Neutral: none (at least 1)."""
@@ -277,8 +255,6 @@ class TrainConfig:
     def from_dict(cls, d: dict[str, Any] | None) -> "TrainConfig":
         """From plain data (parsed YAML); misspelt keys, here or under ``field``, are errors."""
         d = dict(d or {})
-        if "background" in d:
-            d["background"] = tuple(float(x) for x in d["background"])
         return from_dict(cls, d, "training", nested={"field": (FieldConfig, "field")})
 
     @classmethod
@@ -298,6 +274,4 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data for ``config.yaml`` (round-trips through :meth:`from_dict`)."""
-        d = dataclasses.asdict(self)
-        d["background"] = list(self.background)
-        return d
+        return dataclasses.asdict(self)

@@ -23,6 +23,12 @@ from osn.train.trainer import Trainer
 
 log = logging.getLogger(__name__)
 
+#: Fixed training-view pixels of the monitor's PSNR (all usable pixels when fewer).
+MONITOR_PIXELS = 4096
+#: Points per stratum of the monitor's valid-set precision, recall and IoU (``osn evaluate``
+#: reports the same figures from its own, larger count: docs/metrics.md).
+MONITOR_POINTS = 20000
+
 
 class TrainingMonitor:
     """Training-view PSNR on a fixed pixel subset and, with the exact region, valid-set accuracy.
@@ -31,7 +37,7 @@ class TrainingMonitor:
         flat: ``(N,)`` the scored training pixels (frame * HW + pixel), fixed for the run.
         region: the exact region when valid-set accuracy is measured, else None (a single object,
             no region given, or inputs without ground-truth units).
-        points: with ``region``, ``iou_samples`` fixed points uniform in the sampling box, as
+        points: with ``region``, ``MONITOR_POINTS`` fixed points uniform in the sampling box, as
             many in the exact region's interval box and as many near it (:class:`scenecore.validity.SetSamples`).
         s_mc: their free normalised scales, three ``(M, K-1)`` float64 (uniform, inner, near).
         exact_all: with ``region``, the points of every stratum that lie in the region ``(E, K)``.
@@ -39,11 +45,11 @@ class TrainingMonitor:
 
     def __init__(self, trainer: Trainer, region: ValidRegion | None) -> None:
         self.tr = trainer
-        st, cfg = trainer.st, trainer.cfg
+        st = trainer.st
         g = torch.Generator().manual_seed(12345)
         # Pixels of dropped objects (IGNORE_ID) are never trained on, so they are not scored.
         pool = st.usable if st.usable is not None else torch.arange(st.T * st.H * st.W, device=st.device)
-        n = min(cfg.eval_pixels, len(pool))
+        n = min(MONITOR_PIXELS, len(pool))
         self.flat = pool[torch.randperm(len(pool), generator=g)[:n].to(st.device)]
         self.region = None
         # Scales need only the units; test cameras (world_to_anchor) are evaluation's concern.
@@ -54,13 +60,13 @@ class TrainingMonitor:
             self.region = region
             ranges = st.ranges.cpu().numpy()
             # Stratified points: a region of 1e-6 of the box (8 objects) has none among uniform ones.
-            self.points = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), cfg.iou_samples, seed=12345)
+            self.points = set_samples(region, dataset_box(st.inputs, ranges, region.num_objects), MONITOR_POINTS, seed=12345)
             self.s_mc = [torch.from_numpy(free_normalised(st.inputs, ranges, x)) for x in self.points.strata]
             # The region's points of every stratum, for the interval error (the points are fixed).
             self.exact_all = np.concatenate([x[np.asarray(region.contains(x), bool)] for x in self.points.strata])
             if not self.points.exact.any():
                 log.warning("valid-set accuracy: none of %d points in the exact region's interval box is valid; "
-                            "recall and IoU are not measured (NaN)", cfg.iou_samples)
+                            "recall and IoU are not measured (NaN)", MONITOR_POINTS)
 
     @torch.no_grad()
     def best_configuration(self) -> torch.Tensor:
@@ -79,7 +85,7 @@ class TrainingMonitor:
         tr, st, cfg = self.tr, self.tr.st, self.tr.cfg
         frames, p = self.flat // (st.H * st.W), self.flat % (st.H * st.W)
         sbar = self.best_configuration()
-        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, None, tr.bg, cfg.skip_occluded)
+        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, None, None, cfg.skip_occluded)
         m: dict[str, float] = {"psnr": psnr(float(F.mse_loss(out.rgb, st.images[frames, p])))}
         if st.K > 1:
             lab = st.labels[frames, p]

@@ -28,6 +28,12 @@ def _free_space_today(d: dict[str, Any]) -> str:
     return "ordered"
 
 
+def _any_value(key: str):
+    """For a removed option that only sized what the monitor measures: whatever the run held
+    trained as today."""
+    return lambda d: d.get(key)
+
+
 #: Options a run's own ``config.yaml`` may still name though they are gone, each with the value
 #: that trains as today (or a function of the whole config giving it):
 #: :func:`upgrade_run_config` drops them at that value and refuses any other.
@@ -39,6 +45,10 @@ REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0
                                    "label_rays": 0,  # every scale step scores the whole pool
                                    # the paper's values that every config held, constants now
                                    "w_rgb": 1.0, "label_samples": 24, "coverage_threshold": 0.9, "valid_threshold": 0.95,
+                                   # the field step's rejection sampling and the background colour, constants now
+                                   "candidates": 4096, "background": [0.0, 0.0, 0.0],
+                                   # the monitor's sample sizes: any value trained the same weights
+                                   "eval_pixels": _any_value("eval_pixels"), "iou_samples": _any_value("iou_samples"),
                                    "free_space": _free_space_today}
 
 

@@ -34,6 +34,9 @@ from osn.train.tensors import SceneTensors
 
 log = logging.getLogger(__name__)
 
+#: Scale vectors drawn per field step to find one scoring above ``FIELD_STEP_THRESHOLD`` (the
+#: paper resamples until one passes; a fixed batch keeps the step's cost bounded).
+FIELD_STEP_CANDIDATES = 4096
 #: Scale vectors labelled valid that a scale phase keeps to sample around (see ``label_replay``).
 REPLAY_SIZE = 4096
 #: Per object and step, the free pixels of ``w_free``'s term and the silhouette pixels of
@@ -87,7 +90,6 @@ class Trainer:
         self.noise_floor = 0.0
         self.positives = torch.zeros(0, max(K - 1, 1))
         self.loss_acc: dict[str, list[float]] = {}  # losses since the last metrics line
-        self.bg = torch.tensor(cfg.background, device=device)
         # (j, k): j in front of k by the last label pool; the free-space term stops carving j's pixels for k
         self.in_front: frozenset[tuple[int, int]] = frozenset()
         # The pairs (i, j) the last label pool holds rays of (None before the first): it stops
@@ -181,7 +183,7 @@ class Trainer:
         """Object k alone, at its own unit, on training pixels ``flat (R,)`` (stratified samples)."""
         st, cfg = self.st, self.cfg
         one = torch.ones(st.K, device=self.device)
-        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, None, cfg.skip_occluded)
 
     def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on :data:`FREE_RAYS` of its free pixels (see
@@ -244,7 +246,7 @@ class Trainer:
             else:
                 d_gt = torch.zeros(0, device=self.device)
             rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
-            out = render(rays, st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
+            out = render(rays, st.dirs[p], cfg.samples, self.gen, None, cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
             l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
             l_depth = sparse_depth_loss(out.depth[n_rgb:], d_gt, self.depth_robust)
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
@@ -283,7 +285,7 @@ class Trainer:
         # With many objects uniform candidates can all miss the valid set (a small share of the
         # box once several objects are free); then candidates around remembered valid vectors.
         sbar, _, p, fell_back = sample_valid(
-            self.net, self.st.ranges, self.st.anchor, self.gen, self.cfg.candidates, FIELD_STEP_THRESHOLD, warn=False,
+            self.net, self.st.ranges, self.st.anchor, self.gen, FIELD_STEP_CANDIDATES, FIELD_STEP_THRESHOLD, warn=False,
             near=self._near_positives if len(self.positives) else None,
         )
         if fell_back and self.fallbacks == 0:
@@ -307,7 +309,7 @@ class Trainer:
             d_gt = st.sp_depth[sp]
         else:
             s_obj = d_gt = torch.zeros(0, device=self.device)
-        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, self.bg, cfg.skip_occluded)
+        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, None, cfg.skip_occluded)
         l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
         # Eq. 9 compares with sbar_k * d_gt; dividing by sbar_k keeps the loss's weight
         # independent of the sampled scale (same minimiser).

@@ -157,9 +157,10 @@ def test_ignored_pixels_are_never_drawn_for_training(oracle):
     assert len(st.obj_pixels[2]) == 0  # and no object claims them
     # Nor are they scored: training PSNR is measured on trainable pixels only.
     from osn.train import TrainConfig, Trainer, TrainingMonitor
+    from osn.train.monitor import MONITOR_PIXELS
 
-    ev = TrainingMonitor(Trainer(inp, TrainConfig(eval_pixels=10**6), torch.device("cpu")), None)
-    assert len(ev.flat) == len(st.usable) and not torch.any(flat_masks[ev.flat] == I.IGNORE_ID)
+    ev = TrainingMonitor(Trainer(inp, TrainConfig(), torch.device("cpu")), None)
+    assert len(ev.flat) == min(MONITOR_PIXELS, len(st.usable)) and not torch.any(flat_masks[ev.flat] == I.IGNORE_ID)
 
 
 def test_oracle_density_grows_with_the_frame(tmp_path):

@@ -583,7 +583,7 @@ def test_users_video_from_frames_to_a_blender_export(sfm_scene, tmp_path):
     config = tmp_path / "small.yaml"
     config.write_text(
         "stage1_iters: 30\nrounds: 1\nfield_iters: 10\nscale_iters: 10\nfinal_scale_iters: 10\nrays_per_object: 128\n"
-        "rays: 256\ndepth_rays: 32\nsamples: 12\nscale_samples: 64\neval_every: 20\neval_pixels: 512\n"
+        "rays: 256\ndepth_rays: 32\nsamples: 12\nscale_samples: 64\neval_every: 20\n"
         "field: {kind: dense, resolution: 16, initial_resolution: 16, upsample_steps: 0}\n"
     )
     inputs, run, export, work = tmp_path / "inputs", tmp_path / "run", tmp_path / "export", tmp_path / "colmap"

@@ -43,7 +43,7 @@ def test_built_in_defaults_are_the_cpu_config() -> None:
 
 
 def test_config_round_trips_and_checks_the_field_section(tmp_path: Path) -> None:
-    cfg = small_config(background=(0.5, 0.25, 0.0))
+    cfg = small_config(w_seg=0.5, device="cpu")
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match=r"unknown field config keys: \['resolutoin'\]"):
         TrainConfig.from_dict({"field": {"resolutoin": 8}})
@@ -83,6 +83,15 @@ def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) ->
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "coverage_threshold": 0.5}))
     with pytest.raises(ValueError, match=r"trained with coverage_threshold: 0.5, which this version no longer has"):
         TrainConfig.from_yaml(path, run_config=True)
+    # The monitor's sample sizes trained nothing: any value reads. The background colour and the
+    # field step's candidates read at today's constants only.
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "eval_pixels": 16384, "iou_samples": 100000,
+                                    "background": [0.0, 0.0, 0.0], "candidates": 4096}))
+    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
+    for key, value in (("background", [1.0, 1.0, 1.0]), ("candidates", 64)):
+        path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), key: value}))
+        with pytest.raises(ValueError, match=rf"trained with {key}: .*, which this version no longer has"):
+            TrainConfig.from_yaml(path, run_config=True)
     # A removed field option likewise: read at its neutral value, refused at another.
     d = TrainConfig().to_dict()
     path.write_text(yaml.safe_dump({**d, "field": {**d["field"], "tv_density": 0.0}}))

@@ -73,12 +73,12 @@ def test_paper_options_cite_the_paper_and_additions_cite_experiments_that_exist(
 
 @pytest.mark.parametrize("kind, names", [
     ("paper", ["stage1_iters", "rounds", "field_iters", "scale_iters", "rays", "samples", "w_depth", "w_seg",
-               "scale_lr", "scale_samples", "candidates", "field.resolution"]),
+               "scale_lr", "scale_samples", "field.resolution"]),
     ("addition", ["final_scale_iters", "w_opacity", "w_free", "free_band", "free_band_objects",
                   "w_distortion", "w_hidden_smooth", "w_edge", "w_alone", "depth_robust",
                   "label_trim", "final_label_trim", "pair_minority", "label_replay",
                   "anchor_guide_samples", "field.object_resolution", "field.anchor_planes"]),
-    ("infrastructure", ["seed", "eval_every", "eval_pixels", "iou_samples", "checkpoint_every", "device", "background"]),
+    ("infrastructure", ["seed", "eval_every", "checkpoint_every", "device"]),
 ])
 def test_the_options_fall_in_their_categories(kind: str, names: list[str]) -> None:
     options = _options()
