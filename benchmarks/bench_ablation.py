@@ -43,7 +43,7 @@ PAPER_CONFIG = ROOT / "configs" / "osn-paper.yaml"
 #: that each can be judged alone.
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "label-rule": ("a sample may violate a few contact rays; silhouette bleeds dropped; positives replayed",
-                   {"label_trim": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
+                   {"final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
     "free-space": ("density carved where another object owns the pixel",
                    {"w_free": 0.0, "free_band": 0, "free_band_objects": 0}),
     "depth-terms": ("robust depth loss, silhouette depth, distortion loss",

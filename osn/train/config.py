@@ -21,7 +21,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every"
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "free_band", "free_band_objects", "label_stride")
-_FRACTIONS = ("label_replay", "label_trim", "pair_minority", "scale_lr_final")
+_FRACTIONS = ("label_replay", "pair_minority", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
     """``auto`` (resolved by a measured property of the inputs) or a value ``rule`` accepts."""
@@ -213,20 +213,17 @@ class TrainConfig:
     """addition (experiments/2026-11-29-option-count-final-phase-single-options.md): The share of
     each scale step's samples drawn jittered around scale vectors labelled valid earlier instead of
     uniformly. Labels are always recomputed, but a sample's label is relative to the step's best
-    sample (``label_trim``): without valid samples in the step the best is itself far from valid
+    sample (:func:`osn.model.depth_order.trimmed_labels`): without valid samples in the step the best is itself far from valid
     and the learned set comes out many times too large or empty. Unit: fraction of
     ``scale_samples``, in [0, 1]. Neutral: 0 (uniform samples, as the paper's)."""
-    label_trim: float = 0.01
-    """addition (experiments/2026-11-24-measurements-two-cores.md,
-    experiments/2026-11-24-what-limited-valid-set-iou.md): In the rounds' scale phases a sample is
-    labelled valid when on every object pair it violates at most the step's best sample's count
-    plus this share of the pair's rays, against noise in learned depths. Unit: fraction of a
-    pair's rays, in [0, 1]. Neutral: 0 (no more violations than the best sample's)."""
     final_label_trim: float = 0.002
     """addition (experiments/2026-11-25-final-scale-phase.md,
-    experiments/2026-11-29-lost-recall-from-sfm-inputs.md): ``label_trim`` of the final scale
-    phase: tight labels belong on final fields only. Unit: fraction of a pair's rays, in [0, 1].
-    Neutral: the value of ``label_trim`` (the final phase labels as the rounds do)."""
+    experiments/2026-11-29-lost-recall-from-sfm-inputs.md): In the final scale phase a sample is
+    labelled valid when on every object pair it violates at most the step's best sample's count
+    plus this share of the pair's rays, against noise in the final fields' depths (the rounds'
+    phases allow no more than the best sample's: experiments/2026-11-30-single-options-development-split.md).
+    Unit: fraction of a pair's rays, in [0, 1]. Neutral: 0 (no more violations than the best
+    sample's)."""
     pair_minority: float = 0.2
     """addition (experiments/2026-11-25-valid-set-scene-suite.md,
     experiments/2026-11-29-paper-constants-and-pair-minority.md): An object pair with fewer label

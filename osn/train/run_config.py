@@ -49,6 +49,7 @@ REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0
                                    "candidates": 4096, "background": [0.0, 0.0, 0.0],
                                    # the monitor's sample sizes: any value trained the same weights
                                    "eval_pixels": _any_value("eval_pixels"), "iou_samples": _any_value("iou_samples"),
+                                   "label_trim": 0.0,  # the rounds' trim: none now
                                    "free_space": _free_space_today}
 
 

@@ -388,14 +388,10 @@ class Trainer:
         return cfg.scale_lr * (cfg.scale_lr_final + (1.0 - cfg.scale_lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
 
     def label_trim_at(self, phase: Phase) -> float:
-        """The share of a pair's rays a valid sample may violate in this scale phase: ``label_trim``
-        in the rounds, ``final_label_trim`` in the final phase. Field phases sample from the
-        network and reshape the contacts toward whatever it accepts, so labels tight enough to
-        need exact contacts pull the fields with them (recall falls); once the fields are final
-        nothing moves, and tight labels only shrink the set toward the region where the contacts
-        are exact."""
-        final = phase.round == self.cfg.rounds + 1
-        return self.cfg.final_label_trim if final else self.cfg.label_trim
+        """The share of a pair's rays a valid sample may violate beyond the step's best sample in
+        this scale phase: ``final_label_trim`` in the final phase, none in the rounds (a trim there
+        was measured not to gain; docs/experiments/)."""
+        return self.cfg.final_label_trim if phase.round == self.cfg.rounds + 1 else 0.0
 
     def step_scale(self, phase: Phase) -> dict[str, float]:
         """One scale-phase step: BCE of the network on sampled scale vectors labelled by the pool."""

@@ -204,9 +204,8 @@ def test_auto_depth_robustness_is_off_for_exact_depths_only() -> None:
 
 def test_options_that_resolved_by_the_inputs_source_are_plain_numbers() -> None:
     """``final_label_trim`` and ``w_hidden_smooth`` no longer resolve by the inputs' source: ``auto``
-    (which did) is refused, as are words and out-of-range numbers; the final phase's trim is
-    tighter than the rounds'."""
-    assert TrainConfig().final_label_trim == 0.002 < TrainConfig().label_trim and TrainConfig().w_hidden_smooth == 0.3
+    (which did) is refused, as are words and out-of-range numbers."""
+    assert TrainConfig().final_label_trim == 0.002 and TrainConfig().w_hidden_smooth == 0.3
     for key, bad in (("final_label_trim", "auto"), ("final_label_trim", "loose"), ("final_label_trim", 1.5),
                      ("w_hidden_smooth", "auto"), ("w_hidden_smooth", -0.1)):
         with pytest.raises(ValueError, match=key):

@@ -425,10 +425,10 @@ def test_scale_phase_samples_near_earlier_valid_vectors_and_resumes_them(tiny_da
 
 
 def test_final_scale_phase_labels_with_final_label_trim(tiny_dataset: Path) -> None:
-    """The rounds' scale phases trim labels by ``label_trim``, the final one by ``final_label_trim``:
-    with 0 and 1 the rounds reject samples while the final phase accepts every one (a trim of a
-    pair's every ray allows any violation), and with 0 in both the final phase rejects too."""
-    cfg = _cfg(label_trim=0.0, final_label_trim=1.0)
+    """The rounds' scale phases allow no violation beyond the best sample's, the final one
+    ``final_label_trim``: with 1 the rounds reject samples while the final phase accepts every one
+    (a trim of a pair's every ray allows any violation), and with 0 the final phase rejects too."""
+    cfg = _cfg(final_label_trim=1.0)
     tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
     for _ in range(150):  # opaque enough for contested rays (see the test above)
         tr.step_stage1()
@@ -577,16 +577,16 @@ def test_edge_term_is_reported_when_on_and_auto_follows_the_measured_noise(tiny_
 
 def test_final_phase_trims_the_same_whatever_the_inputs_source(tiny_dataset: Path) -> None:
     """The final scale phase trims ``final_label_trim`` (0.2% by default) on every input, the
-    rounds ``label_trim``; the source label changes neither."""
+    rounds nothing; the source label changes neither."""
     trims = {}
     for source in ("oracle", "colmap"):
         inputs = oracle_inputs(tiny_dataset)
         inputs.source = source
-        tr = Trainer(inputs, _cfg(label_trim=0.01), torch.device("cpu"))
+        tr = Trainer(inputs, _cfg(), torch.device("cpu"))
         scale = [p for p in tr.schedule if p.name == "scale"]
         assert scale[-1].round == tr.cfg.rounds + 1 and all(p.round <= tr.cfg.rounds for p in scale[:-1])
         trims[source] = [tr.label_trim_at(p) for p in scale]
-    assert trims["oracle"] == trims["colmap"] == [0.01, 0.01, 0.002]
+    assert trims["oracle"] == trims["colmap"] == [0.0, 0.0, 0.002]
 
 
 def test_objects_grids_grow_to_their_footprint_and_the_anchors_to_resolution(tiny_dataset: Path, tmp_path: Path) -> None:
