@@ -213,17 +213,17 @@ class TrainConfig:
     """addition (experiments/2026-11-29-option-count-final-phase-single-options.md): The share of
     each scale step's samples drawn jittered around scale vectors labelled valid earlier instead of
     uniformly. Labels are always recomputed, but a sample's label is relative to the step's best
-    sample (:func:`osn.model.depth_order.trimmed_labels`): without valid samples in the step the best is itself far from valid
-    and the learned set comes out many times too large or empty. Unit: fraction of
-    ``scale_samples``, in [0, 1]. Neutral: 0 (uniform samples, as the paper's)."""
+    sample (:func:`osn.model.depth_order.trimmed_labels`): without valid samples in the step the
+    best is itself far from valid and the learned set comes out many times too large or empty.
+    Unit: fraction of ``scale_samples``, in [0, 1]. Neutral: 0 (uniform samples, as the paper's)."""
     final_label_trim: float = 0.002
     """addition (experiments/2026-11-25-final-scale-phase.md,
-    experiments/2026-11-29-lost-recall-from-sfm-inputs.md): In the final scale phase a sample is
-    labelled valid when on every object pair it violates at most the step's best sample's count
+    experiments/2026-11-29-lost-recall-from-sfm-inputs.md,
+    experiments/2026-11-30-single-options-development-split.md): In the final scale phase a sample
+    is labelled valid when on every object pair it violates at most the step's best sample's count
     plus this share of the pair's rays, against noise in the final fields' depths (the rounds'
-    phases allow no more than the best sample's: experiments/2026-11-30-single-options-development-split.md).
-    Unit: fraction of a pair's rays, in [0, 1]. Neutral: 0 (no more violations than the best
-    sample's)."""
+    phases allow no more than the best sample's). Unit: fraction of a pair's rays, in [0, 1].
+    Neutral: 0 (no more violations than the best sample's)."""
     pair_minority: float = 0.2
     """addition (experiments/2026-11-25-valid-set-scene-suite.md,
     experiments/2026-11-29-paper-constants-and-pair-minority.md): An object pair with fewer label
