@@ -8,7 +8,7 @@ same, and refuses, naming the key, where that cannot be.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS
 
@@ -28,7 +28,7 @@ def _free_space_today(d: dict[str, Any]) -> str:
     return "ordered"
 
 
-def _any_value(key: str):
+def _any_value(key: str) -> Callable[[dict[str, Any]], Any]:
     """For a removed option that only sized what the monitor measures: whatever the run held
     trained as today."""
     return lambda d: d.get(key)
