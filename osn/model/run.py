@@ -155,7 +155,7 @@ class TrainedRun:
                 dc = dirs[i : i + chunk]
                 R = len(dc)
                 rays = [anchor[c] if anchor and k == self.anchor_pos else self._object_rays(k, pose[k], R) for k in keep]
-                out: RenderOutput = render_by_hits(rays, dc, S, None, float(cfg.get("skip_occluded", 0.0)))
+                out: RenderOutput = render_by_hits(rays, dc, S, skip_occluded=float(cfg.get("skip_occluded", 0.0)))
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc
                 depth[i : i + R] = out.normalised_depth(EMPTY_ACC)

@@ -85,7 +85,7 @@ class TrainingMonitor:
         tr, st, cfg = self.tr, self.tr.st, self.tr.cfg
         frames, p = self.flat // (st.H * st.W), self.flat % (st.H * st.W)
         sbar = self.best_configuration()
-        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, None, None, cfg.skip_occluded)
+        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, skip_occluded=cfg.skip_occluded)
         m: dict[str, float] = {"psnr": psnr(float(F.mse_loss(out.rgb, st.images[frames, p])))}
         if st.K > 1:
             lab = st.labels[frames, p]

@@ -183,7 +183,7 @@ class Trainer:
         """Object k alone, at its own unit, on training pixels ``flat (R,)`` (stratified samples)."""
         st, cfg = self.st, self.cfg
         one = torch.ones(st.K, device=self.device)
-        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, None, cfg.skip_occluded)
+        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, skip_occluded=cfg.skip_occluded)
 
     def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on :data:`FREE_RAYS` of its free pixels (see
@@ -246,7 +246,7 @@ class Trainer:
             else:
                 d_gt = torch.zeros(0, device=self.device)
             rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
-            out = render(rays, st.dirs[p], cfg.samples, self.gen, None, cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
+            out = render(rays, st.dirs[p], cfg.samples, self.gen, skip_occluded=cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
             l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
             l_depth = sparse_depth_loss(out.depth[n_rgb:], d_gt, self.depth_robust)
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
@@ -309,7 +309,7 @@ class Trainer:
             d_gt = st.sp_depth[sp]
         else:
             s_obj = d_gt = torch.zeros(0, device=self.device)
-        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, None, cfg.skip_occluded)
+        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, skip_occluded=cfg.skip_occluded)
         l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
         # Eq. 9 compares with sbar_k * d_gt; dividing by sbar_k keeps the loss's weight
         # independent of the sampled scale (same minimiser).
