@@ -13,16 +13,15 @@ mean and standard deviation over the seeds: one run's IoU moves with the seed al
 than most options move it (docs/experiments/). Variants (overrides of
 ``configs/osn-cpu.yaml``; docs/training.md explains each option):
 
-* ``before``: no other object's pixel carved (``free_band_objects: 0``), a constant scale learning rate (``scale_lr_final: 1``), no
-  stage-1 terms in field phases (``w_alone: 0``), every object pair kept (``pair_minority: 0``), the
-  final scale phase like the others (``final_label_trim: 0.01``, ``final_scale_iters: 300``);
-* ``after``: the config's own values (``free_band_objects: 1``,
-  ``w_alone: 1``, ``scale_lr_final: 0.1``, ``pair_minority: 0.2``, a final scale phase of 2000
-  steps on labels trimmed by ``final_label_trim: 0.002``);
+* ``before``: a constant scale learning rate (``scale_lr_final: 1``), no stage-1 terms in field
+  phases (``w_alone: 0``), every object pair kept (``pair_minority: 0``), the final scale phase
+  like the others (``final_label_trim: 0.01``, ``final_scale_iters: 300``);
+* ``after``: the config's own values (``w_alone: 1``, ``scale_lr_final: 0.1``,
+  ``pair_minority: 0.2``, a final scale phase of 2000 steps on labels trimmed by
+  ``final_label_trim: 0.002``);
 * ``loose-final``: ``after`` with the final scale phase like the others (``final_label_trim:
   0.01``, ``final_scale_iters: 300``);
-* ``tight-all``: ``loose-final`` with ``label_trim: 0.002`` in every scale phase;
-* ``no-minority``, ``no-objects``, ``no-alone``: ``after`` without one option.
+* ``no-minority``, ``no-alone``: ``after`` without one option.
 
 ``key=value`` override every variant's config (e.g. ``rounds=2``). Runs that already finished in
 ``DIR`` are read, not retrained. Set ``OMP_NUM_THREADS`` (1-2 on the shared CPU machine).
@@ -52,13 +51,10 @@ from benchutil import print_command  # noqa: E402
 AFTER: dict = {}
 LOOSE_FINAL = {"final_label_trim": 0.01, "final_scale_iters": 300}
 VARIANTS = {
-    "before": {"free_band_objects": 0, "w_alone": 0.0, "scale_lr_final": 1.0, "pair_minority": 0.0,
-               **LOOSE_FINAL},
+    "before": {"w_alone": 0.0, "scale_lr_final": 1.0, "pair_minority": 0.0, **LOOSE_FINAL},
     "after": AFTER,
     "loose-final": LOOSE_FINAL,
-    "tight-all": {**LOOSE_FINAL, "label_trim": 0.002, "final_label_trim": 0.002},
     "no-minority": {"pair_minority": 0.0},
-    "no-objects": {"free_band_objects": 0},
     "no-alone": {"w_alone": 0.0},
 }
 

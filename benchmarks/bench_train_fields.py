@@ -57,7 +57,7 @@ def main() -> None:
     kinds = {
         "dense": base.field,
         # TensoRF at the same final resolution, the paper's 16 / 48 components.
-        "tensorf": dataclasses.replace(base.field, kind="tensorf", lr_grid=0.02),
+        "tensorf": dataclasses.replace(base.field, kind="tensorf"),
     }
     summary = {}
     for name, fcfg in kinds.items():

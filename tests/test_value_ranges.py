@@ -65,9 +65,9 @@ def test_many_samples_are_drawn_in_bounded_batches(small_run: Path) -> None:
 
 
 BAD_TRAINING = {
-    "w_opacity": math.nan, "w_depth": -5, "skip_occluded": math.nan, "seed": 1.5, "samples": 100_000_000,
+    "w_opacity": math.nan, "w_free": -5, "w_distortion": math.nan, "seed": 1.5, "samples": 100_000_000,
     "rays": 10**9, "scale_samples": 10**10, "device": "gpu", "scale_lr": 0.0,
-    "w_seg": math.inf,
+    "w_alone": math.inf,
 }
 
 
@@ -84,7 +84,8 @@ def test_training_yaml_with_a_value_out_of_range_is_one_line(tiny_dataset: Path,
 
 
 def test_field_sizes_that_would_allocate_many_gb_are_refused() -> None:
-    for bad in ({"resolution": 100_000}, {"object_resolution": 5000}, {"anchor_planes": 10**6}, {"hidden": 10**7}):
+    for bad in ({"resolution": 100_000}, {"object_resolution": 5000}, {"anchor_planes": 10**6},
+                {"initial_resolution": 10**7}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TrainConfig.from_dict({"field": bad})
 

@@ -82,8 +82,13 @@ class Field(nn.Module):
         """Resample the parameters to ``resolution`` voxels per axis (keeps the represented field)."""
         raise NotImplementedError
 
-    def param_groups(self, lr_grid: float, lr_net: float = NET_LR) -> list[dict]:
-        """Optimiser parameter groups: grids at ``lr_grid``, networks at ``lr_net`` (as TensoRF)."""
+    #: Adam rate of the field's grids (the dense grid, the anchor's colour planes, TensoRF's planes
+    #: and lines), per field kind: every config of a kind held its value.
+    grid_lr: float = 0.0
+
+    def param_groups(self, lr_grid: float | None = None, lr_net: float = NET_LR) -> list[dict]:
+        """Optimiser parameter groups: grids at ``lr_grid`` (default: the kind's :attr:`grid_lr`),
+        networks at ``lr_net`` (as TensoRF)."""
         raise NotImplementedError
 
 
@@ -164,6 +169,8 @@ class DenseGridField(Field):
     """
 
     view_dependent = False
+    #: The dense grid's rate in every config since the first (no MLP: the grid holds the colour).
+    grid_lr = 0.2
 
     def __init__(self, bbox: torch.Tensor, resolution: int, planes: int = 0) -> None:
         super().__init__(bbox, resolution)
@@ -211,8 +218,9 @@ class DenseGridField(Field):
         self.grid = nn.Parameter(g.reshape(4, -1).T.contiguous())
         self.resolution = r
 
-    def param_groups(self, lr_grid: float, lr_net: float = NET_LR) -> list[dict]:
-        return [{"params": [self.grid] + ([self.planes] if self.planes is not None else []), "lr": lr_grid}]
+    def param_groups(self, lr_grid: float | None = None, lr_net: float = NET_LR) -> list[dict]:
+        lr = self.grid_lr if lr_grid is None else lr_grid
+        return [{"params": [self.grid] + ([self.planes] if self.planes is not None else []), "lr": lr}]
 
 
 def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
@@ -237,10 +245,11 @@ class TensoRFVM(Field):
     A = B [f_j(plane) * g_j(line)]_j, rgb = MLP(A, PE(A), dir, PE(dir)).
 
     The component counts default to the paper's (appendix "Details of Networks": 16 density and
-    48 appearance components, TensoRF's 27-channel appearance basis); ``hidden`` is the colour
-    MLP's width (``field.hidden``)."""
+    48 appearance components, TensoRF's 27-channel appearance basis, its colour MLP of two hidden
+    layers of 128 and its grid rate 0.02)."""
 
     view_dependent = True
+    grid_lr = 0.02
 
     def __init__(
         self,
@@ -249,7 +258,7 @@ class TensoRFVM(Field):
         density_components: int = 16,
         appearance_components: int = 48,
         app_dim: int = 27,
-        hidden: int = 64,
+        hidden: int = 128,
         view_freqs: int = 2,
         feat_freqs: int = 2,
         init_scale: float = 0.1,
@@ -311,9 +320,10 @@ class TensoRFVM(Field):
             setattr(self, name, nn.Parameter(F.interpolate(p, size=(r, 1), mode="bilinear", align_corners=True).contiguous()))
         self.resolution = r
 
-    def param_groups(self, lr_grid: float, lr_net: float = NET_LR) -> list[dict]:
+    def param_groups(self, lr_grid: float | None = None, lr_net: float = NET_LR) -> list[dict]:
         grids = [self.density_planes, self.density_lines, self.app_planes, self.app_lines]
-        return [{"params": grids, "lr": lr_grid}, {"params": list(self.basis.parameters()) + list(self.mlp.parameters()), "lr": lr_net}]
+        lr = self.grid_lr if lr_grid is None else lr_grid
+        return [{"params": grids, "lr": lr}, {"params": list(self.basis.parameters()) + list(self.mlp.parameters()), "lr": lr_net}]
 
 
 #: ``field`` options added after runs were first written, with the value that trained those runs
@@ -325,7 +335,10 @@ FIELD_ADDED_LATER: dict[str, Any] = {"object_resolution": 0, "anchor_planes": 0}
 #: ``load_run`` ignores them (TensoRF's sizes are its constructor's defaults now: a checkpoint of
 #: other sizes does not load).
 FIELD_REMOVED_OPTIONS: dict[str, Any] = {"tv_density": 0.0, "density_components": 16, "appearance_components": 48,
-                                         "app_dim": 27, "lr_net": 1e-3}
+                                         "app_dim": 27, "lr_net": 1e-3,
+                                         # a function of the field mapping: the kind's value today
+                                         "hidden": lambda f: 128 if f.get("kind") == "tensorf" else f.get("hidden"),
+                                         "lr_grid": lambda f: 0.02 if f.get("kind") == "tensorf" else 0.2}
 
 
 #: Most voxels per axis of a grid (the paper's largest is 640) and texels per side of a plane:
@@ -339,9 +352,6 @@ _FIELD_RULES: dict[str, Rule] = {
     "resolution": integer(2, MAX_RESOLUTION),
     "initial_resolution": integer(2, MAX_RESOLUTION),
     "upsample_steps": integer(0, 64),
-    # A fractional count (1.5 layers) would crash later, as a traceback.
-    "hidden": integer(1, 4096),
-    "lr_grid": number(0.0, lo_open=True, what="a positive learning rate"),
     "object_resolution": Rule(lambda v: v == "auto" or integer(0, MAX_RESOLUTION).ok(v), f"auto or an integer in 0..{MAX_RESOLUTION}"),
     # Bilinear interpolation needs 2 texels per side; 0 = no planes.
     "anchor_planes": Rule(lambda v: v == "auto" or (integer(0, MAX_PLANE_SIZE).ok(v) and v != 1),
@@ -376,14 +386,6 @@ class FieldConfig:
     coarse-to-fine, as TensoRF): Log-spaced resolution increases from ``initial_resolution`` to
     the final resolution over the first 40% of all field iterations. Unit: steps. Neutral: 0 (the
     fields start at their final resolution)."""
-    hidden: int = 64
-    """paper (appendix "Details of Networks", Object Scale-Invariant Representation Module: the
-    tiny colour MLP, as TensoRF's): Width of the colour MLP's two hidden layers (``tensorf``
-    only). Unit: nodes per layer. Neutral: none."""
-    lr_grid: float = 0.2
-    """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): Adam learning
-    rate of the grids (the dense grid, the anchor's colour planes, TensoRF's planes and lines).
-    Unit: learning rate. Neutral: none (must be positive)."""
     object_resolution: int | str = "auto"
     """addition (experiments/2026-11-27-object-resolution-anchor-planes.md): Final voxels per axis
     of every object's field but the anchor's (at most ``resolution``), grown on the anchor's
@@ -430,5 +432,5 @@ def make_field(cfg: FieldConfig, bbox: torch.Tensor, seed: int = 0, resolution: 
     if cfg.kind == "dense":
         return DenseGridField(bbox, r, planes)
     if cfg.kind == "tensorf":
-        return TensoRFVM(bbox, r, hidden=cfg.hidden, seed=seed)
+        return TensoRFVM(bbox, r, seed=seed)
     raise ValueError(f"unknown field kind {cfg.kind!r} (expected 'dense' or 'tensorf')")

@@ -22,7 +22,7 @@ from osn.model.fields import FIELD_REMOVED_OPTIONS, Field, FieldConfig, make_fie
 from osn.preprocess.inputs import SceneInputs, load_inputs
 from osn.model.placement import novel_to_training_camera, object_transforms
 from osn.model.scale_net import ScaleNet, check_scores, full_sbar
-from osn.model.volume import ObjectRays, RenderOutput, ShadedSamples, render_by_hits, shade
+from osn.model.volume import SKIP_OCCLUDED, ObjectRays, RenderOutput, ShadedSamples, render_by_hits, shade
 
 #: Version of ``checkpoint.pt`` that ``osn train`` writes (2 added the scale phase's replay
 #: buffer). The first checkpoints carried no version key and are version 1; both hold the same
@@ -111,7 +111,7 @@ class TrainedRun:
         if self.anchor_pos not in pose:
             return []
         S = n_samples or int(self.config.get("samples", 32))
-        skip = float(self.config.get("skip_occluded", 0.0))
+        skip = SKIP_OCCLUDED
         return [shade(self._object_rays(self.anchor_pos, pose[self.anchor_pos], len(dc)), dc, S, skip)
                 for dc in torch.split(dirs, chunk)]
 
@@ -155,7 +155,7 @@ class TrainedRun:
                 dc = dirs[i : i + chunk]
                 R = len(dc)
                 rays = [anchor[c] if anchor and k == self.anchor_pos else self._object_rays(k, pose[k], R) for k in keep]
-                out: RenderOutput = render_by_hits(rays, dc, S, skip_occluded=float(cfg.get("skip_occluded", 0.0)))
+                out: RenderOutput = render_by_hits(rays, dc, S, skip_occluded=SKIP_OCCLUDED)
                 rgb[i : i + R] = out.rgb
                 acc[i : i + R] = out.acc
                 depth[i : i + R] = out.normalised_depth(EMPTY_ACC)

@@ -31,6 +31,10 @@ from osn.model.fields import Field
 MAX_OPTICAL = 1e4
 #: Floor of a segmentation probability (keeps the log finite on rays no object reaches).
 SEG_EPS = 1e-8
+#: The ``skip_occluded`` of every render of training and of a run: samples behind a transmittance
+#: below it are not shaded, which changes a ray's opacity by less than it (far below an 8-bit
+#: level; docs/experiments/2026-11-26-render-each-ray-with-objects-it-hits.md). A shortcut for speed.
+SKIP_OCCLUDED = 1e-3
 
 
 @dataclass

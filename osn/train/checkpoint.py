@@ -35,7 +35,7 @@ class TrainingDiverged(UserError):
     @classmethod
     def at(cls, out: Path, iteration: int, phase: Phase, what: str) -> "TrainingDiverged":
         return cls(f"{out}: training diverged at iteration {iteration} ({phase.name} phase): {what}; "
-                   "the last checkpoint is kept (lower field.lr_grid / scale_lr, or check the inputs)")
+                   "the last checkpoint is kept (lower scale_lr, or check the inputs)")
 
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:

@@ -20,7 +20,7 @@ from osn.train.run_config import upgrade_run_config
 _POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every", "checkpoint_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
-                 "free_band", "free_band_objects", "label_stride")
+                 "label_stride")
 _FRACTIONS = ("label_replay", "pair_minority", "scale_lr_final")
 
 def _auto_or(rule: Rule) -> Rule:
@@ -47,8 +47,7 @@ def _device() -> Rule:
 _RULES: dict[str, Rule] = {
     "seed": integer(0),
     "field": Rule(lambda v: isinstance(v, FieldConfig), "a field mapping"),
-    **{name: number(0.0) for name in ("w_depth", "w_seg", "w_opacity", "w_free")},
-    "skip_occluded": number(0.0, 1.0, hi_open=True),
+    **{name: number(0.0) for name in ("w_opacity", "w_free")},
     "scale_lr": number(0.0, lo_open=True, what="a positive learning rate"),
     "device": _device(),
     "w_alone": number(0.0),
@@ -73,7 +72,9 @@ class TrainConfig:
     """Everything a training run depends on (stored as ``config.yaml`` in the run).
 
     Iteration counts are per phase; ``rays`` counts are per step. See :mod:`osn.train.loop`.
-    The defaults are the CPU default (``configs/osn-cpu.yaml``). Each option's docstring begins
+    The defaults are the CPU default (``configs/osn-cpu.yaml``). The paper's loss weights are
+    constants: RGB 1, sparse depth :data:`osn.train.trainer.W_DEPTH`, segmentation
+    :data:`osn.train.trainer.W_SEG` (the additions' weights are options). Each option's docstring begins
     with its category (``paper (...)``, ``addition (...)`` or ``infrastructure``) and names its
     neutral value; docs/training.md's Options table is generated from them
     (``scripts/docs_generate.py``).
@@ -127,16 +128,6 @@ class TrainConfig:
     :data:`ANCHOR_GUIDE_SAMPLES` where the anchor's box spans more pixels than its grid has voxels
     or it has no sparse depth, else 0. Unit: density samples per anchor ray. Neutral: 0 (even
     stratified samples)."""
-    skip_occluded: float = 1e-3
-    """infrastructure: A gradient-free density pass finds the samples whose transmittance is below
-    this; a render evaluates only the others with gradients and colour, which changes a ray's
-    opacity by less than this. A shortcut for speed. Unit: transmittance, in [0, 1). Neutral: 0
-    (every sample evaluated)."""
-    w_depth: float = 1.0
-    """paper (Sec. 3.3, Eq. 2 and Eq. 9; appendix "Details of the Joint Optimization", Loss
-    Weights): Weight of the sparse-depth loss, alone and in the composite (there compared in the
-    object's own unit). Every loss weight is relative to the squared RGB error's, 1 as in the paper
-    (not an option). Unit: loss weight. Neutral: 0 (no depth loss)."""
     depth_robust: float | str = "auto"
     """addition (experiments/2026-11-26-sfm-phantom-depths-robust-depth-loss.md): The sparse-depth
     loss's form: 0 the squared error, ``k > 0`` a Cauchy loss at ``k`` times the batch's median
@@ -144,10 +135,6 @@ class TrainConfig:
     inputs, :data:`DEPTH_ROBUST_NOISY` on noisy ones (:mod:`osn.preprocess.depth_noise`). Unit:
     multiples of the median
     residual. Neutral: 0 (the paper's squared error)."""
-    w_seg: float = 0.01
-    """paper (Sec. 3.3, Eq. 10; appendix "Details of the Joint Optimization", Loss Weights): Weight
-    of the segmentation loss of field steps (negative log-likelihood of the objects' log weight
-    shares against the masks). Unit: loss weight. Neutral: 0 (no segmentation loss)."""
     w_opacity: float = 1.0
     """addition (experiments/2026-11-24-measurements-two-cores.md): Weight of the stage-1 term that
     pulls an object's opacity to 1 on every pixel of its mask, so a semi-transparent field cannot
@@ -158,9 +145,10 @@ class TrainConfig:
     squared opacity of an object alone on :data:`osn.train.trainer.FREE_RAYS` of its free pixels
     per step, so objects do not bleed past their silhouettes. An object's free pixels
     (``osn.train.tensors.SceneTensors.free_pixels``) show the anchor or nothing within
-    ``free_band`` of its mask, or, for objects but the anchor, another object within
-    ``free_band_objects``, except objects the last label pool put in front of it or, holding
-    rays of both, holds none of the pair. Unit: loss weight. Neutral: 0 (term off)."""
+    :data:`osn.train.trainer.FREE_BAND` pixels of its mask, or, for objects but the anchor,
+    another object within :data:`osn.train.trainer.FREE_BAND_OBJECTS`, except objects the last
+    label pool put in front of it or, holding rays of both, holds none of the pair. Unit: loss
+    weight. Neutral: 0 (term off)."""
     w_distortion: float = 0.03
     """addition (experiments/2026-11-26-seed-spread-distortion.md): Weight of mip-NeRF 360's
     distortion loss on an object's own pixels in stage 1 (how spread the weights are along the
@@ -185,18 +173,6 @@ class TrainConfig:
     neighbour's by at most :data:`osn.train.losses.EDGE_SLOPE`, the excess squared. ``auto``
     (:func:`resolve_w_edge`): 0 on exact inputs, :data:`W_EDGE_NOISY` on noisy ones
     (:mod:`osn.preprocess.depth_noise`). Unit: loss weight. Neutral: 0 (term off)."""
-    free_band: int = 4
-    """addition (experiments/2026-11-24-measurements-two-cores.md,
-    experiments/2026-11-27-fields-lose-novel-views.md): How far from an object's mask a pixel
-    showing the anchor or nothing may lie to be one of its free pixels (``w_free``). Unit: pixels.
-    Neutral: 0 (no such free pixels)."""
-    free_band_objects: int = 1
-    """addition (experiments/2026-11-25-valid-set-scene-suite.md,
-    experiments/2026-11-28-schedule-and-metrics-as-measured.md): How far from an object's mask
-    another object's pixel may lie to be one of its free pixels (``w_free``; objects but the
-    anchor; once a label pool holds rays of both objects, only if it holds rays of the pair and
-    did not put the other in front), for gaps the grid cannot resolve. Unit: pixels. Neutral: 0
-    (only the anchor's pixels and empty ones are free)."""
     scale_lr: float = 5e-3
     """paper (appendix "Details of the Joint Optimization", Training Schedule: Adam): The scale
     network's Adam learning rate at the start of every scale phase (the paper's is 0.001). Unit:

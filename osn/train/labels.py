@@ -16,7 +16,7 @@ import torch
 
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
-from osn.model.volume import render_by_hits
+from osn.model.volume import SKIP_OCCLUDED, render_by_hits
 from osn.train.auto import label_stride
 from osn.train.config import TrainConfig
 from osn.train.tensors import SceneTensors
@@ -62,7 +62,7 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
         for a in range(0, len(idx), chunk):
             i = idx[a : a + chunk]
             # Only the rays that cross the object's box are rendered (the same values: one object alone).
-            out = render_by_hits(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], LABEL_SAMPLES, None, cfg.skip_occluded)
+            out = render_by_hits(st.object_rays(fields, frames_all[i], one, [k]), st.dirs[pix_all[i]], LABEL_SAMPLES, None, SKIP_OCCLUDED)
             depth[i, k] = out.normalised_depth()
             acc[i, k] = out.acc
             covered[i, k] = out.acc > COVERAGE_THRESHOLD

@@ -18,7 +18,7 @@ from scenecore.validity import ValidRegion, set_accuracy, set_samples
 from benchgen.score.metrics import psnr_from_mse as psnr
 from osn.evaluate.units import dataset_box, free_normalised, ground_truth_problem
 from osn.model.scale_net import full_sbar
-from osn.model.volume import render
+from osn.model.volume import SKIP_OCCLUDED, render
 from osn.train.trainer import Trainer
 
 log = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ class TrainingMonitor:
         tr, st, cfg = self.tr, self.tr.st, self.tr.cfg
         frames, p = self.flat // (st.H * st.W), self.flat % (st.H * st.W)
         sbar = self.best_configuration()
-        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, skip_occluded=cfg.skip_occluded)
+        out = render(st.object_rays(tr.fields, frames, sbar), st.dirs[p], cfg.samples, skip_occluded=SKIP_OCCLUDED)
         m: dict[str, float] = {"psnr": psnr(float(F.mse_loss(out.rgb, st.images[frames, p])))}
         if st.K > 1:
             lab = st.labels[frames, p]

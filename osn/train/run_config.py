@@ -20,12 +20,8 @@ ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "
 
 def _free_space_today(d: dict[str, Any]) -> str:
     """The removed ``free_space`` choice that trains as today for config ``d``: ``ordered`` (what
-    ``w_free`` carves now); any choice where the term is off; ``anchor`` or ``objects`` where no
-    other object's pixel is free (``free_band_objects: 0``), which carve what ``ordered`` does."""
-    old = d.get("free_space")
-    if d.get("w_free", 1.0) == 0 or (old in ("anchor", "objects") and d.get("free_band_objects", 1) == 0):
-        return old
-    return "ordered"
+    ``w_free`` carves now), or any choice where the term is off."""
+    return d.get("free_space") if d.get("w_free", 1.0) == 0 else "ordered"
 
 
 def _any_value(key: str) -> Callable[[dict[str, Any]], Any]:
@@ -50,6 +46,10 @@ REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0
                                    # the monitor's sample sizes: any value trained the same weights
                                    "eval_pixels": _any_value("eval_pixels"), "iou_samples": _any_value("iou_samples"),
                                    "label_trim": 0.0,  # the rounds' trim: none now
+                                   # the paper's loss weights and the free-space bands, constants now
+                                   "w_depth": 1.0, "w_seg": 0.01, "free_band": 4, "free_band_objects": 1,
+                                   # a render shortcut below an 8-bit level: any value trained as today
+                                   "skip_occluded": _any_value("skip_occluded"),
                                    "free_space": _free_space_today}
 
 
@@ -71,7 +71,7 @@ def upgrade_run_config(d: dict[str, Any]) -> dict[str, Any]:
     field = d.get("field") if isinstance(d.get("field"), dict) else None
     # Each removed option's value today in this config.
     today = {k: n(d) if callable(n) else n for k, n in REMOVED_OPTIONS.items()}
-    today.update({f"field.{k}": v for k, v in FIELD_REMOVED_OPTIONS.items()})
+    today.update({f"field.{k}": v(field or {}) if callable(v) else v for k, v in FIELD_REMOVED_OPTIONS.items()})
     named = {**d, **{f"field.{k}": v for k, v in (field or {}).items()}}
     if gone := [k for k, v in named.items() if k in today and v != today[k]]:
         raise ValueError("trained with " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this version no "

@@ -21,7 +21,7 @@ from osn.model.fields import Field, make_field, saved_plane_size
 from osn.model.run import CHECKPOINT_VERSION
 from osn.model.scale_net import FIELD_STEP_THRESHOLD, ScaleNet, full_sbar, sample_valid
 from osn.model.depth_order import in_front_pairs, trimmed_labels
-from osn.model.volume import RenderOutput, render
+from osn.model.volume import SKIP_OCCLUDED, RenderOutput, render
 from osn.preprocess.depth_noise import depth_consistency
 from osn.preprocess.inputs import SceneInputs
 from osn.train.auto import (anchor_plane_size, checkpoint_anchor_guide_samples, object_resolutions,
@@ -45,6 +45,15 @@ REPLAY_SIZE = 4096
 FREE_RAYS = 128
 EDGE_RAYS = 64
 HIDDEN_STRIPS = 32
+#: The paper's loss weights of the sparse depths (Eq. 2 and 9) and of the segmentation (Eq. 10),
+#: relative to the squared RGB error's 1 (appendix, Loss Weights); every config held them.
+W_DEPTH = 1.0
+W_SEG = 0.01
+#: How far from an object's mask its free pixels (``w_free``) may lie: pixels showing the anchor or
+#: nothing within ``FREE_BAND``; for objects but the anchor, other objects' pixels within
+#: ``FREE_BAND_OBJECTS``, for gaps a 64^3 grid cannot resolve (docs/training.md, Free space).
+FREE_BAND = 4
+FREE_BAND_OBJECTS = 1
 #: Pixels per strip of ``w_hidden_smooth``: the shortest odd strip that has a second difference
 #: on each side of its centre, so a strip reaching two pixels into an object still holds one
 #: visible anchor pixel per triple at the silhouette.
@@ -108,7 +117,7 @@ class Trainer:
         return make_field(self.cfg.field, bbox, seed=self.cfg.seed + k, resolution=resolution, planes=planes).to(self.device)
 
     def _make_field_opt(self) -> None:
-        groups = [g for f in self.fields for g in f.param_groups(self.cfg.field.lr_grid)]
+        groups = [g for f in self.fields for g in f.param_groups()]
         self.field_opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
     def state_dict(self) -> dict[str, Any]:
@@ -183,7 +192,7 @@ class Trainer:
         """Object k alone, at its own unit, on training pixels ``flat (R,)`` (stratified samples)."""
         st, cfg = self.st, self.cfg
         one = torch.ones(st.K, device=self.device)
-        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, skip_occluded=cfg.skip_occluded)
+        return render(st.object_rays(self.fields, flat // (st.H * st.W), one, [k]), st.dirs[flat % (st.H * st.W)], cfg.samples, self.gen, skip_occluded=SKIP_OCCLUDED)
 
     def _free_loss(self, k: int) -> torch.Tensor:
         """Mean squared opacity of object k alone on :data:`FREE_RAYS` of its free pixels (see
@@ -238,7 +247,7 @@ class Trainer:
             pix = st.obj_pixels[k][self._randint(len(st.obj_pixels[k]), cfg.rays_per_object)]
             frames, p = pix // (st.H * st.W), pix % (st.H * st.W)
             n_rgb = len(p)
-            if st.has_depth and cfg.w_depth > 0 and len(st.obj_sparse[k]):
+            if st.has_depth and len(st.obj_sparse[k]):
                 sp = st.obj_sparse[k][self._randint(len(st.obj_sparse[k]), cfg.depth_rays)]
                 frames = torch.cat([frames, st.sp_frame[sp]])
                 p = torch.cat([p, st.sp_pix[sp]])
@@ -246,14 +255,14 @@ class Trainer:
             else:
                 d_gt = torch.zeros(0, device=self.device)
             rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
-            out = render(rays, st.dirs[p], cfg.samples, self.gen, skip_occluded=cfg.skip_occluded, with_distortion=cfg.w_distortion > 0)
+            out = render(rays, st.dirs[p], cfg.samples, self.gen, skip_occluded=SKIP_OCCLUDED, with_distortion=cfg.w_distortion > 0)
             l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
             l_depth = sparse_depth_loss(out.depth[n_rgb:], d_gt, self.depth_robust)
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
             # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
             # ray shortens) then pushes its surfaces behind the true ones.
             l_acc = (1.0 - out.acc).square().mean()
-            total = total + l_rgb + cfg.w_depth * l_depth + cfg.w_opacity * l_acc
+            total = total + l_rgb + W_DEPTH * l_depth + cfg.w_opacity * l_acc
             if cfg.w_distortion > 0:
                 # The object's own pixels show one surface: a fog spread along the ray has the right
                 # expected depth where sparse depths hold it, and any depth elsewhere (docs/training.md).
@@ -301,7 +310,7 @@ class Trainer:
         flat = self._randint(st.T * st.H * st.W, cfg.rays) if st.usable is None else st.usable[self._randint(len(st.usable), cfg.rays)]
         frames, p = flat // (st.H * st.W), flat % (st.H * st.W)
         n_rgb = len(p)
-        if st.has_depth and cfg.w_depth > 0:
+        if st.has_depth:
             sp = self._randint(len(st.sp_depth), cfg.depth_rays)
             frames = torch.cat([frames, st.sp_frame[sp]])
             p = torch.cat([p, st.sp_pix[sp]])
@@ -309,7 +318,7 @@ class Trainer:
             d_gt = st.sp_depth[sp]
         else:
             s_obj = d_gt = torch.zeros(0, device=self.device)
-        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, skip_occluded=cfg.skip_occluded)
+        out = render(st.object_rays(self.fields, frames, sbar), st.dirs[p], cfg.samples, self.gen, skip_occluded=SKIP_OCCLUDED)
         l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
         # Eq. 9 compares with sbar_k * d_gt; dividing by sbar_k keeps the loss's weight
         # independent of the sampled scale (same minimiser).
@@ -317,7 +326,7 @@ class Trainer:
         lab = st.labels[frames, p]
         seg_ok = lab >= 0
         l_seg = F.nll_loss(out.log_seg[seg_ok], lab[seg_ok]) if st.K > 1 and seg_ok.any() else out.rgb.sum() * 0.0
-        loss = l_rgb + cfg.w_depth * l_depth + cfg.w_seg * l_seg
+        loss = l_rgb + W_DEPTH * l_depth + W_SEG * l_seg
         out_losses = {"rgb": l_rgb.item(), "depth": l_depth.item(), "seg": l_seg.item(), "score": score}
         if cfg.w_alone > 0:
             # The stage-1 objective keeps each object's own geometry (its silhouette, opacity,
@@ -348,7 +357,7 @@ class Trainer:
         cfg = self.cfg
         if cfg.w_free <= 0:
             return [torch.zeros(0, dtype=torch.long, device=self.device) for _ in range(self.st.K)]
-        return self.st.free_pixels(cfg.free_band, cfg.free_band_objects, self.in_front, self.constrained)
+        return self.st.free_pixels(FREE_BAND, FREE_BAND_OBJECTS, self.in_front, self.constrained)
 
     def _set_pool_pairs(self, in_front: frozenset[tuple[int, int]], constrained: frozenset[tuple[int, int]] | None) -> None:
         """What a label pool says of the pairs: ``(j, k)`` with j in front of k, and every pair

@@ -22,8 +22,8 @@ from tests.osn.train.common import small_config
 
 
 @pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
-                                 {"w_seg": -0.1}, {"scale_lr_final": 1.5}, {"rounds": "five"},
-                                 {"label_replay": "high"}, {"free_band": -1}, {"depth_robust": -1.0},
+                                 {"w_free": -0.1}, {"scale_lr_final": 1.5}, {"rounds": "five"},
+                                 {"label_replay": "high"}, {"label_stride": -1}, {"depth_robust": -1.0},
                                  {"depth_robust": "always"}])
 def test_config_rejects_values_that_would_divide_by_zero_or_mean_nothing(bad: dict, tmp_path: Path) -> None:
     (key, value), = bad.items()
@@ -43,7 +43,7 @@ def test_built_in_defaults_are_the_cpu_config() -> None:
 
 
 def test_config_round_trips_and_checks_the_field_section(tmp_path: Path) -> None:
-    cfg = small_config(w_seg=0.5, device="cpu")
+    cfg = small_config(w_free=0.5, device="cpu")
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match=r"unknown field config keys: \['resolutoin'\]"):
         TrainConfig.from_dict({"field": {"resolutoin": 8}})
@@ -122,16 +122,40 @@ def test_a_run_config_naming_the_options_that_became_constants_reads_at_their_va
     path.write_text(yaml.safe_dump({**old, "field": {**old["field"], "app_dim": 12}}))
     with pytest.raises(ValueError, match="field.app_dim: 12"):
         TrainConfig.from_yaml(path, run_config=True)
-    # The free-space choices that carve as today: any where the term is off, and `anchor` (or
-    # `objects`) where no other object's pixel is free.
-    for extra in [{"free_space": "none", "w_free": 0.0}, {"free_space": "all", "w_free": 0.0},
-                  {"free_space": "anchor", "free_band_objects": 0}]:
+    # The free-space choices that carve as today: any where the term is off.
+    for extra in [{"free_space": "none", "w_free": 0.0}, {"free_space": "all", "w_free": 0.0}]:
         path.write_text(yaml.safe_dump({**old, **extra}))
-        want = {k: v for k, v in extra.items() if k != "free_space"}
-        assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), **want)
+        assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), w_free=0.0)
     path.write_text(yaml.safe_dump({**old, "free_space": "none"}))  # the term on, carving nothing
     with pytest.raises(ValueError, match="free_space: 'none'"):
         TrainConfig.from_yaml(path, run_config=True)
+    # `anchor` carved no other object's pixel: the band against objects is a constant of 1 now.
+    path.write_text(yaml.safe_dump({**old, "free_space": "anchor", "free_band_objects": 0}))
+    with pytest.raises(ValueError, match="free_band_objects: 0"):
+        TrainConfig.from_yaml(path, run_config=True)
+
+
+def test_a_run_config_naming_the_paper_weights_bands_and_field_rates_reads_at_their_values(tmp_path: Path) -> None:
+    """The paper's loss weights, the free-space bands, the render shortcut and the field kind's
+    grid rate and colour MLP width left the config: a run's config.yaml at the values that train
+    as today reads (the shortcut at any value; TensoRF's width at any value on a dense field, which
+    has no MLP), another is refused naming the key."""
+    d = TrainConfig().to_dict()
+    old = {**d, "w_depth": 1.0, "w_seg": 0.01, "free_band": 4, "free_band_objects": 1, "skip_occluded": 1e-4,
+           "field": {**d["field"], "hidden": 64, "lr_grid": 0.2}}
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(old))
+    assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
+    tensorf = {**old, "field": {**old["field"], "kind": "tensorf", "hidden": 128, "lr_grid": 0.02}}
+    path.write_text(yaml.safe_dump(tensorf))
+    assert TrainConfig.from_yaml(path, run_config=True).field.kind == "tensorf"
+    for bad, name in [({**old, "w_seg": 0.5}, "w_seg: 0.5"), ({**old, "free_band": 2}, "free_band: 2"),
+                      ({**old, "field": {**old["field"], "lr_grid": 0.1}}, "field.lr_grid: 0.1"),
+                      ({**tensorf, "field": {**tensorf["field"], "hidden": 64}}, "field.hidden: 64"),
+                      ({**tensorf, "field": {**tensorf["field"], "lr_grid": 0.2}}, "field.lr_grid: 0.2")]:
+        path.write_text(yaml.safe_dump(bad))
+        with pytest.raises(ValueError, match=f"trained with {name}"):
+            TrainConfig.from_yaml(path, run_config=True)
 
 
 def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_resolution(tmp_path: Path) -> None:
@@ -143,8 +167,8 @@ def test_a_run_config_written_before_object_resolution_keeps_the_objects_at_reso
     assert TrainConfig.from_yaml(path).field.object_resolution == "auto" == FieldConfig().object_resolution
 
 
-@pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"lr_grid": 0.0},
-                                 {"upsample_steps": 1.5}, {"hidden": 64.5}, {"hidden": True},
+@pytest.mark.parametrize("bad", [{"resolution": 1}, {"initial_resolution": 0}, {"kind": "mlp"}, {"resolution": 64.5},
+                                 {"upsample_steps": 1.5}, {"upsample_steps": True},
                                  {"object_resolution": -1}, {"object_resolution": "half"}, {"object_resolution": 2.5}])
 def test_field_config_rejects_impossible_values(bad: dict) -> None:
     (key, _), = bad.items()

@@ -72,9 +72,9 @@ def test_paper_options_cite_the_paper_and_additions_cite_experiments_that_exist(
 
 
 @pytest.mark.parametrize("kind, names", [
-    ("paper", ["stage1_iters", "rounds", "field_iters", "scale_iters", "rays", "samples", "w_depth", "w_seg",
+    ("paper", ["stage1_iters", "rounds", "field_iters", "scale_iters", "rays", "samples", "depth_rays",
                "scale_lr", "scale_samples", "field.resolution"]),
-    ("addition", ["final_scale_iters", "w_opacity", "w_free", "free_band", "free_band_objects",
+    ("addition", ["final_scale_iters", "w_opacity", "w_free",
                   "w_distortion", "w_hidden_smooth", "w_edge", "w_alone", "depth_robust",
                   "final_label_trim", "pair_minority", "label_replay",
                   "anchor_guide_samples", "field.object_resolution", "field.anchor_planes"]),

@@ -16,6 +16,7 @@ from osn.model.run import load_run
 from osn.model.scale_net import FIELD_STEP_THRESHOLD
 from osn.train import TrainConfig, train
 from osn.train.checkpoint import read_metrics
+from osn.train.trainer import W_DEPTH, W_SEG
 from tests.osn.train.test_option_docs import _category, _options
 
 REPO = Path(__file__).resolve().parents[3]
@@ -28,7 +29,7 @@ PAPER_GPU = REPO / "configs" / "osn-paper-gpu.yaml"
 NEUTRAL = {
     "final_scale_iters": 0, "anchor_guide_samples": 0, "depth_robust": 0.0, "w_opacity": 0.0, "w_free": 0.0,
     "w_distortion": 0.0, "w_hidden_smooth": 0.0, "w_alone": 0.0, "w_edge": 0.0,
-    "free_band": 0, "free_band_objects": 0, "scale_lr_final": 1.0,
+    "scale_lr_final": 1.0,
     "label_replay": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0,
     "label_stride": 1,
     "field.object_resolution": 0, "field.anchor_planes": 0,
@@ -37,7 +38,7 @@ NEUTRAL = {
 REPRESENTATION = {"field.kind"}
 #: What may differ between the CPU-size and the GPU-size paper configs: sizes, not the method.
 SIZES = {"field", "stage1_iters", "field_iters", "scale_iters", "rays_per_object", "rays", "depth_rays", "samples",
-         "skip_occluded", "eval_every", "checkpoint_every"}
+         "eval_every", "checkpoint_every"}
 
 
 def _value(cfg: TrainConfig, name: str):
@@ -59,7 +60,7 @@ def test_every_addition_is_neutral_in_the_paper_configs(path: Path) -> None:
 @pytest.mark.parametrize("path", [PAPER, PAPER_GPU], ids=["cpu", "gpu"])
 def test_the_paper_configs_use_the_papers_losses_rate_and_alternation(path: Path) -> None:
     cfg = TrainConfig.from_yaml(path)
-    assert (cfg.w_depth, cfg.w_seg) == (1.0, 0.01)  # appendix, Loss Weights (RGB's is 1, not an option)
+    assert (W_DEPTH, W_SEG) == (1.0, 0.01)  # appendix, Loss Weights (RGB's is 1): constants, not options
     assert cfg.scale_lr == 0.001 and cfg.scale_lr_final == 1.0  # appendix, Training Schedule: Adam 1e-3
     assert cfg.rounds == 5 and cfg.final_scale_iters == 0  # Sec. 4.4: R = 5; no phase after the last round
     assert FIELD_STEP_THRESHOLD == 0.95  # Sec. 3.3, below Eq. 4

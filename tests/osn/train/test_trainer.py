@@ -14,6 +14,7 @@ from osn.model.volume import render
 from osn.preprocess.inputs import normalise_scales
 from osn.preprocess.oracle import oracle_inputs
 from osn.train import TrainConfig, Trainer, build_schedule
+from osn.train.trainer import FREE_BAND, FREE_BAND_OBJECTS
 from osn.train.labels import COVERAGE_THRESHOLD, build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
 from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
@@ -131,14 +132,15 @@ def test_label_pool_uses_the_configured_or_automatic_stride(tiny_dataset: Path) 
 
 
 def test_free_pixels_are_the_anchor_near_each_object(tiny_dataset: Path) -> None:
-    """With ``free_band_objects: 0`` an object's free pixels show the anchor (or nothing), lie
-    within ``free_band`` pixels of its mask, in frames where it is present; the anchor gets none.
-    Without the term (``w_free: 0``) no object has any."""
-    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(free_band_objects=0), torch.device("cpu"))
-    st, band = tr.st, tr.cfg.free_band
+    """Without the band against other objects an object's free pixels show the anchor (or
+    nothing), lie within ``FREE_BAND`` pixels of its mask, in frames where it is present; the
+    anchor gets none. The trainer carves these and the band against objects; without the term
+    (``w_free: 0``) no object has any."""
+    tr = Trainer(oracle_inputs(tiny_dataset), _cfg(), torch.device("cpu"))
+    st, band = tr.st, FREE_BAND
+    assert all(torch.equal(a, b) for a, b in zip(tr.free, st.free_pixels(FREE_BAND, FREE_BAND_OBJECTS)))
     lab = st.labels.reshape(st.T, st.H, st.W)
-    for k in range(st.K):
-        free = tr.free[k]
+    for k, free in enumerate(st.free_pixels(FREE_BAND, 0)):
         if k == st.anchor:
             assert torch.all(st.labels.reshape(-1)[free] == -1)
             continue
@@ -233,7 +235,7 @@ def test_ordered_free_space_follows_the_label_pool_and_resumes(tiny_dataset: Pat
     assert tr.constrained == frozenset(tr.cache["constraints"].pairs)
     behind = [k for j, k in tr.in_front if tr.st.anchor not in (j, k)]
     assert behind  # the tiny scene's two objects: one is in front of the other (measured: 1 of 2)
-    expected = tr.st.free_pixels(cfg.free_band, cfg.free_band_objects, tr.in_front, tr.constrained)
+    expected = tr.st.free_pixels(FREE_BAND, FREE_BAND_OBJECTS, tr.in_front, tr.constrained)
     assert all(torch.equal(a, b) for a, b in zip(tr.free, expected))
     assert all(len(tr.free[k]) < len(objects[k]) for k in behind)
     back = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
@@ -251,7 +253,7 @@ def test_free_space_loss_stops_objects_bleeding_past_their_silhouette(tiny_datas
         one = torch.ones(tr.st.K)
         accs = []
         with torch.no_grad():
-            free = tr.st.free_pixels(tr.cfg.free_band, tr.cfg.free_band_objects)  # the same pixels either way
+            free = tr.st.free_pixels(FREE_BAND, FREE_BAND_OBJECTS)  # the same pixels either way
             for k in range(tr.st.K):
                 f = free[k]
                 if k == tr.st.anchor or not len(f):
