@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 
 import torch
+import torch.nn.functional as F
 
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
@@ -29,6 +30,11 @@ LABEL_SAMPLES = 24
 #: An object covers a label-pool ray when its opacity alone exceeds this (the objects whose depths
 #: the soft Z-buffer orders on a ray, Eq. 16-18; the paper names no threshold).
 COVERAGE_THRESHOLD = 0.9
+#: The anchor's own sparse depths within this many pixels of an object's mask, in the same frame,
+#: are beside the object (:func:`anchor_bias`).
+BIAS_BAND = 2
+#: Fewer such depths beside an object than this: no bias is measured for it (0).
+BIAS_MIN_DEPTHS = 10
 
 
 def label_pixels(st: SceneTensors, cfg: TrainConfig) -> torch.Tensor:
@@ -43,8 +49,8 @@ def label_pixels(st: SceneTensors, cfg: TrainConfig) -> torch.Tensor:
 
 @torch.no_grad()
 def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tensor, cfg: TrainConfig,
-                        chunk: int = 8192) -> dict[str, torch.Tensor]:
-    """Every object rendered alone on training pixels ``flat (P,)``.
+                        chunk: int = 8192, objects: list[int] | None = None) -> dict[str, torch.Tensor]:
+    """Every object (or those at positions ``objects``) rendered alone on training pixels ``flat (P,)``.
 
     Returns ``depth (P, K)`` (independent planar depth in the object's own unit), ``acc (P, K)``
     (opacity) and ``covered (P, K)`` (``acc >`` :data:`COVERAGE_THRESHOLD`). A ray an object covers
@@ -57,7 +63,7 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
     acc = torch.zeros(len(flat), st.K, device=st.device)
     one = torch.ones(st.K, device=st.device)
     frames_all, pix_all = flat // HW, flat % HW
-    for k in range(st.K):
+    for k in range(st.K) if objects is None else objects:
         idx = torch.nonzero(st.present[k, frames_all])[:, 0]  # absent frames cost nothing
         for a in range(0, len(idx), chunk):
             i = idx[a : a + chunk]
@@ -67,6 +73,75 @@ def render_alone_depths(st: SceneTensors, fields: list[Field], flat: torch.Tenso
             acc[i, k] = out.acc
             covered[i, k] = out.acc > COVERAGE_THRESHOLD
     return {"depth": depth, "covered": covered, "acc": acc}
+
+
+def _anchor_points_near_objects(st: SceneTensors) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The anchor's own sparse depths where objects' contact bounds are read: ``flat (N,)`` pixels
+    (frame * HW + pixel), planar depths ``(N,)`` float64 and the object position ``(N,)`` each
+    belongs to. *Beside* an object: the anchor's depths within :data:`BIAS_BAND` pixels of the
+    object's mask in the same frame. *Behind* it: the anchor's points of every other frame, through
+    its poses, projected into a frame where they fall on the object's mask (the anchor is never in
+    front of an object, so there the object hides them)."""
+    a, HW = st.anchor, st.H * st.W
+    sel = torch.nonzero(st.sp_obj == a)[:, 0]
+    lab = st.labels.reshape(st.T, st.H, st.W)
+    flat = st.sp_frame[sel] * HW + st.sp_pix[sel]
+    depth = st.sp_depth[sel].double()
+    out_flat, out_depth, out_obj = [], [], []
+    for k in range(st.K):
+        if k == a:
+            continue
+        near = F.max_pool2d((lab == k).float()[:, None], 2 * BIAS_BAND + 1, stride=1, padding=BIAS_BAND)
+        m = near.reshape(-1)[flat] > 0
+        out_flat.append(flat[m]), out_depth.append(depth[m]), out_obj.append(torch.full((int(m.sum()),), k))
+    # Behind: every anchor point in the anchor's frame, then in each other frame's camera.
+    poses = st.poses[a].double()  # (T, 4, 4) camera-to-anchor
+    frames = st.sp_frame[sel]
+    cam = depth[:, None] * st.dirs[st.sp_pix[sel]].double()  # camera frame: dirs have z = 1
+    pts = torch.einsum("nij,nj->ni", poses[frames, :3, :3], cam) + poses[frames, :3, 3]
+    K = torch.as_tensor(st.inputs.K, dtype=torch.float64, device=st.device)
+    for g in torch.nonzero(st.present[a])[:, 0].tolist():
+        other = frames != g
+        q = (pts[other] - poses[g, :3, 3]) @ poses[g, :3, :3]  # R^T (p - t), row vectors
+        z = q[:, 2]
+        front = z > 0
+        uv = torch.floor((q[front] @ K.T)[:, :2] / z[front, None]).long()
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < st.W) & (uv[:, 1] >= 0) & (uv[:, 1] < st.H)
+        uv, zf = uv[inside], z[front][inside]
+        covering = lab[g, uv[:, 1], uv[:, 0]]
+        hidden = (covering >= 0) & (covering != a)
+        out_flat.append(g * HW + uv[hidden, 1] * st.W + uv[hidden, 0])
+        out_depth.append(zf[hidden]), out_obj.append(covering[hidden].cpu())
+    cat = torch.cat
+    return cat(out_flat), cat(out_depth), cat(out_obj).to(st.device)
+
+
+@torch.no_grad()
+def anchor_bias(st: SceneTensors, fields: list[Field], cfg: TrainConfig) -> torch.Tensor:
+    """Per object position, how far the anchor's rendered depth sits from the anchor's own sparse
+    depths where that object's contact bounds are read, beside and behind it
+    (:func:`_anchor_points_near_objects`): the median of ``log(rendered / sparse)``. ``(K,)``
+    float64; 0 for the anchor itself and for an object with fewer than :data:`BIAS_MIN_DEPTHS`
+    such depths.
+
+    An object's bounds against the anchor are read at its contacts, on a surface of the anchor
+    the object hides or borders. A field fitted to depths a few per cent off (SfM's) renders that
+    surface nearer or farther than its own depths say there (docs/training.md, the label rule);
+    on exact depths the figure is the field's own error.
+    """
+    out = torch.zeros(st.K, dtype=torch.float64, device=st.device)
+    if st.K < 2 or not bool((st.sp_obj == st.anchor).any()):
+        return out
+    flat, depth, obj = _anchor_points_near_objects(st)
+    if not len(flat):
+        return out
+    rendered = render_alone_depths(st, fields, flat, cfg, objects=[st.anchor])["depth"][:, st.anchor].double()
+    r = torch.log(rendered) - torch.log(depth)
+    for k in range(st.K):
+        m = (obj == k) & torch.isfinite(r)
+        if k != st.anchor and int(m.sum()) >= BIAS_MIN_DEPTHS:
+            out[k] = r[m].median()
+    return out
 
 
 def contested_rays(st: SceneTensors, flat: torch.Tensor, depth: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
@@ -96,8 +171,13 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
     """
     flat = label_pixels(st, cfg)
     c = render_alone_depths(st, fields, flat, cfg)
+    # On each object's rays the anchor's depth is corrected by its measured bias beside that
+    # object, so a contact bound is read against the surface its depths say (anchor_bias).
+    bias = anchor_bias(st, fields, cfg)
+    gt_all = st.labels.reshape(-1)[flat]
+    c["depth"][:, st.anchor] *= torch.exp(-bias[gt_all]).to(c["depth"].dtype)
     keep = contested_rays(st, flat, c["depth"], c["covered"])
-    pool = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep]}
+    pool = {"flat": flat[keep], "depth": c["depth"][keep], "covered": c["covered"][keep], "anchor_bias": bias}
     pool["gt"] = st.labels.reshape(-1)[pool["flat"]]
     pool["constraints"] = order_constraints(pool["depth"], pool["covered"], pool["gt"], cfg.pair_minority)
     if not len(pool["flat"]):

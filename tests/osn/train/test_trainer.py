@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from osn.preprocess.inputs import normalise_scales
 from osn.preprocess.oracle import oracle_inputs
 from osn.train import TrainConfig, Trainer, build_schedule
 from osn.train.trainer import FREE_BAND, FREE_BAND_OBJECTS
-from osn.train.labels import COVERAGE_THRESHOLD, build_label_pool, label_pixels, render_alone_depths
+from osn.train.labels import COVERAGE_THRESHOLD, anchor_bias, build_label_pool, label_pixels, render_alone_depths
 from osn.train.tensors import SceneTensors
 from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
 from tests.osn.train.common import small_config as _cfg
@@ -103,6 +104,39 @@ def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_datase
         assert c["covered"][:, tr.st.anchor].any() and (~c["covered"][:, tr.st.anchor]).any()
     with pytest.raises(ValueError, match="anchor_coverage"):
         TrainConfig.from_dict({"anchor_coverage": 0.5})
+
+def test_the_pool_reads_the_anchor_at_the_depth_its_own_depths_give_beside_each_object(tiny_dataset: Path) -> None:
+    """``anchor_bias``: the anchor's rendered depth against its own sparse depths beside and behind
+    each object; on exact depths the field's own error (under 10% after 150 stage-1 steps, the
+    surface the objects hide not yet fitted from the other frames). Told 10% farther
+    (its depths scaled), every measured object's bias falls by about log 1.1, and the pool reads the
+    anchor's depth on that object's rays, and only there, moved by the change."""
+    cfg = _cfg()
+    tr = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
+    for _ in range(150):  # opaque enough for contested rays on this 32 px scene
+        tr.step_stage1()
+    st, a = tr.st, tr.st.anchor
+    bias = anchor_bias(st, tr.fields, cfg)
+    measured = [k for k in range(st.K) if k != a and float(bias[k]) != 0.0]
+    assert measured and float(bias[a]) == 0.0  # the tiny scene has anchor depths beside its objects
+    assert float(bias.abs().max()) < 0.1
+    before = build_label_pool(st, tr.fields, cfg, 0)
+    assert torch.equal(before["anchor_bias"], bias)
+    st.sp_depth[st.sp_obj == a] *= 1.1
+    moved = anchor_bias(st, tr.fields, cfg)
+    assert torch.allclose(moved[measured], bias[measured] - math.log(1.1), atol=0.02)
+    after = build_label_pool(st, tr.fields, cfg, 0)
+    row = {int(f): i for i, f in enumerate(after["flat"])}
+    both = [i for i, f in enumerate(before["flat"].tolist()) if f in row]
+    assert len(both) > 0.9 * len(before["flat"])
+    rows = [row[before["flat"][i].item()] for i in both]
+    ratio = after["depth"][rows] / before["depth"][both]  # (rays, K)
+    gt = before["gt"][both]
+    assert torch.isin(gt, torch.tensor(measured)).all()  # this scene's pool: objects in front of the anchor
+    assert torch.allclose(ratio[:, a], torch.exp(bias - moved)[gt].float(), rtol=1e-5)
+    others = torch.isfinite(ratio) & (torch.arange(st.K) != a)
+    assert others.any() and torch.all(ratio[others] == 1.0)  # the objects' own depths as rendered
+
 
 def test_scale_phase_warns_when_no_ray_constrains_overlapping_objects(tiny_dataset: Path, caplog) -> None:
     """Untrained fields are transparent, so no ray constrains a depth order: the scale phase
