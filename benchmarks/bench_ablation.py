@@ -38,13 +38,14 @@ DEFAULT_CONFIG = ROOT / "configs" / "osn-cpu.yaml"
 PAPER_CONFIG = ROOT / "configs" / "osn-paper.yaml"
 
 #: Families of additions: what each is for, and the neutral values that switch it off
-#: (``field.X`` is a field option). The last five single out one option of a family each (the
-#: two whose ``auto`` differs between exact and noisy inputs, and three never measured alone), so
+#: (``field.X`` is a field option). The last six single out one option of a family each (the
+#: two whose ``auto`` differs between exact and noisy inputs, and four never measured alone), so
 #: that each can be judged alone. The band against other objects was a sixth until it became a
 #: constant (``osn.train.trainer.FREE_BAND_OBJECTS``; its row in the tables was measured before).
 FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
-    "label-rule": ("a sample may violate a few contact rays; silhouette bleeds dropped; positives replayed",
-                   {"final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0}),
+    "label-rule": ("a sample may violate a few contact rays; silhouette bleeds dropped; positives replayed; "
+                   "the room's depth corrected by its measured bias",
+                   {"final_label_trim": 0.0, "pair_minority": 0.0, "label_replay": 0.0, "anchor_bias": 0.0}),
     "free-space": ("density carved where another object owns the pixel",
                    {"w_free": 0.0}),
     "depth-terms": ("robust depth loss, silhouette depth, distortion loss",
@@ -61,6 +62,7 @@ FAMILIES: dict[str, tuple[str, dict[str, Any]]] = {
     "label-replay": ("scale samples replayed around earlier positives, alone", {"label_replay": 0.0}),
     "pair-minority": ("silhouette bleeds dropped from the labels, alone", {"pair_minority": 0.0}),
     "distortion": ("the distortion loss alone", {"w_distortion": 0.0}),
+    "anchor-bias": ("the room's depth on label rays corrected by its measured bias, alone", {"anchor_bias": 0.0}),
 }
 
 def config_for(name: str, train_seed: int) -> dict[str, Any]:

@@ -21,7 +21,7 @@ _POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every"
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "label_stride")
-_FRACTIONS = ("label_replay", "pair_minority", "scale_lr_final")
+_FRACTIONS = ("label_replay", "pair_minority", "scale_lr_final", "anchor_bias")
 
 def _auto_or(rule: Rule) -> Rule:
     """``auto`` (resolved by a measured property of the inputs) or a value ``rule`` accepts."""
@@ -206,6 +206,14 @@ class TrainConfig:
     rays than this times its opposite pair's is left out of the labels: those few rays are a field
     filling a gap it cannot resolve. Unit: ratio of ray counts, in [0, 1]. Neutral: 0 (every pair
     kept)."""
+    anchor_bias: float = 1.0
+    """addition (experiments/2026-11-30-anchor-bias-contact-bounds.md): The label pool reads the
+    anchor's depth on each object's rays moved by this share of the anchor's measured bias beside
+    and behind that object (:func:`osn.train.labels.anchor_bias`: its rendered depth against its
+    own sparse depths within :data:`osn.train.labels.BIAS_BAND` pixels of the object's mask, and
+    against its points of other frames that the object hides), so a contact bound is read against
+    the surface the anchor's depths say, not one its field pulled nearer. Unit: fraction of the
+    measured bias, in [0, 1]. Neutral: 0 (the anchor's depth as rendered)."""
     label_stride: int = 0
     """addition (not measured): The label pool takes every ``label_stride``-th labelled pixel per
     axis; 0 picks the stride that keeps about :data:`AUTO_LABEL_SIDE` pixels along the longer

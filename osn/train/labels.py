@@ -173,7 +173,7 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
     c = render_alone_depths(st, fields, flat, cfg)
     # On each object's rays the anchor's depth is corrected by its measured bias beside that
     # object, so a contact bound is read against the surface its depths say (anchor_bias).
-    bias = anchor_bias(st, fields, cfg)
+    bias = anchor_bias(st, fields, cfg) * cfg.anchor_bias if cfg.anchor_bias > 0 else torch.zeros(st.K, dtype=torch.float64, device=st.device)
     gt_all = st.labels.reshape(-1)[flat]
     c["depth"][:, st.anchor] *= torch.exp(-bias[gt_all]).to(c["depth"].dtype)
     keep = contested_rays(st, flat, c["depth"], c["covered"])

@@ -15,7 +15,7 @@ from osn.model.fields import FIELD_ADDED_LATER, FIELD_REMOVED_OPTIONS
 #: Options added after runs were first written, with the value that trained those runs (the
 #: term off); :func:`upgrade_run_config` fills them in.
 ADDED_LATER: dict[str, Any] = {"anchor_guide_samples": 0, "w_distortion": 0.0, "depth_robust": 0.0, "w_edge": 0.0,
-                               "w_hidden_smooth": 0.0}
+                               "w_hidden_smooth": 0.0, "anchor_bias": 0.0}
 
 
 def _free_space_today(d: dict[str, Any]) -> str:

@@ -76,7 +76,7 @@ def test_paper_options_cite_the_paper_and_additions_cite_experiments_that_exist(
                "scale_lr", "scale_samples", "field.resolution"]),
     ("addition", ["final_scale_iters", "w_opacity", "w_free",
                   "w_distortion", "w_hidden_smooth", "w_edge", "w_alone", "depth_robust",
-                  "final_label_trim", "pair_minority", "label_replay",
+                  "final_label_trim", "pair_minority", "label_replay", "anchor_bias",
                   "anchor_guide_samples", "field.object_resolution", "field.anchor_planes"]),
     ("infrastructure", ["seed", "eval_every", "checkpoint_every", "device"]),
 ])

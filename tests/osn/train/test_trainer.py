@@ -107,7 +107,8 @@ def test_every_object_covers_label_rays_above_the_coverage_threshold(tiny_datase
 
 def test_the_pool_reads_the_anchor_at_the_depth_its_own_depths_give_beside_each_object(tiny_dataset: Path) -> None:
     """``anchor_bias``: the anchor's rendered depth against its own sparse depths beside and behind
-    each object; on exact depths the field's own error (under 10% after 150 stage-1 steps, the
+    each object, by which the pool moves the anchor's depth on that object's rays (not at
+    ``anchor_bias: 0``); on exact depths the field's own error (under 10% after 150 stage-1 steps, the
     surface the objects hide not yet fitted from the other frames). Told 10% farther
     (its depths scaled), every measured object's bias falls by about log 1.1, and the pool reads the
     anchor's depth on that object's rays, and only there, moved by the change."""
@@ -122,6 +123,12 @@ def test_the_pool_reads_the_anchor_at_the_depth_its_own_depths_give_beside_each_
     assert float(bias.abs().max()) < 0.1
     before = build_label_pool(st, tr.fields, cfg, 0)
     assert torch.equal(before["anchor_bias"], bias)
+    off = build_label_pool(st, tr.fields, dataclasses.replace(cfg, anchor_bias=0.0), 0)  # the paper's reading
+    assert not off["anchor_bias"].any()
+    common = [i for i, f in enumerate(before["flat"].tolist()) if f in set(off["flat"].tolist())]
+    at = {int(f): i for i, f in enumerate(off["flat"])}
+    rendered = off["depth"][[at[int(before["flat"][i])] for i in common], a]
+    assert torch.allclose(before["depth"][common, a], rendered * torch.exp(-bias[before["gt"][common]]).float(), rtol=1e-5)
     st.sp_depth[st.sp_obj == a] *= 1.1
     moved = anchor_bias(st, tr.fields, cfg)
     assert torch.allclose(moved[measured], bias[measured] - math.log(1.1), atol=0.02)
