@@ -33,7 +33,7 @@ COVERAGE_THRESHOLD = 0.9
 #: The anchor's own sparse depths within this many pixels of an object's mask, in the same frame,
 #: are beside the object (:func:`anchor_bias`).
 BIAS_BAND = 2
-#: Fewer such depths beside an object than this: no bias is measured for it (0).
+#: Fewer of the anchor's depths beside and behind an object than this: no bias is measured for it (0).
 BIAS_MIN_DEPTHS = 10
 
 
@@ -171,9 +171,11 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
     """
     flat = label_pixels(st, cfg)
     c = render_alone_depths(st, fields, flat, cfg)
-    # On each object's rays the anchor's depth is corrected by its measured bias beside that
-    # object, so a contact bound is read against the surface its depths say (anchor_bias).
-    bias = anchor_bias(st, fields, cfg) * cfg.anchor_bias if cfg.anchor_bias > 0 else torch.zeros(st.K, dtype=torch.float64, device=st.device)
+    # On each object's rays the anchor's depth is moved by (a share of) its measured bias beside
+    # and behind that object, so a contact bound is read against the surface its depths say.
+    bias = torch.zeros(st.K, dtype=torch.float64, device=st.device)
+    if cfg.anchor_bias > 0:
+        bias = cfg.anchor_bias * anchor_bias(st, fields, cfg)
     gt_all = st.labels.reshape(-1)[flat]
     c["depth"][:, st.anchor] *= torch.exp(-bias[gt_all]).to(c["depth"].dtype)
     keep = contested_rays(st, flat, c["depth"], c["covered"])

@@ -104,6 +104,8 @@ def _metrics_record(trainer: Trainer, phase: Phase, monitor: TrainingMonitor) ->
     rec.update({key: float(np.mean(v)) for key, v in acc.items()})
     if "rgb" in acc:
         rec["train_batch_psnr"] = psnr(rec["rgb"])
+    if phase.name == "scale" and trainer.cache is not None:  # the pool's measured room bias per object
+        rec["anchor_bias"] = [round(float(b), 5) for b in trainer.cache["anchor_bias"]]
     rec.update(monitor())
     rec["fallbacks"] = trainer.fallbacks
     acc.clear()

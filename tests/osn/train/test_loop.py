@@ -4,6 +4,7 @@ and measures only against the region its caller gives."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -31,6 +32,9 @@ def test_training_improves_psnr_and_writes_metrics(tiny_dataset: Path, tiny_regi
     for key in ("wall_time", "rgb", "iou", "precision", "recall", "scale_rel_err"):
         assert any(key in r for r in m), key
     assert all(0.0 <= r["iou"] <= 1.0 for r in m if "iou" in r)
+    scale = [r for r in m if r["phase"] == "scale"]  # the pool's measured room bias, one per object
+    assert scale and all(len(r["anchor_bias"]) == 3 and all(math.isfinite(b) for b in r["anchor_bias"]) for r in scale)
+    assert all("anchor_bias" not in r for r in m if r["phase"] != "scale")
     ck = torch.load(run / "checkpoint.pt", weights_only=True)
     assert ck["iteration"] == m[-1]["iteration"] and ck["net"] is not None
 
