@@ -17,7 +17,7 @@ from osn.model.fields import FieldConfig
 from osn.train.run_config import upgrade_run_config
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
-_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every", "checkpoint_every")
+_POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every")
 #: Counts that may be 0 (a phase or a term switched off) but not negative.
 _NON_NEGATIVE = ("rounds", "stage1_iters", "field_iters", "scale_iters", "final_scale_iters", "depth_rays",
                  "label_stride")
@@ -220,11 +220,9 @@ class TrainConfig:
     image side (:func:`osn.train.auto.label_stride`), which bounds the pool's render cost. Unit:
     pixels. Neutral: 1 (every pixel)."""
     eval_every: int = 200
-    """infrastructure: Iterations between two lines of ``metrics.jsonl`` (and one at every phase
-    end). Unit: iterations. Neutral: none (at least 1)."""
-    checkpoint_every: int = 250
-    """infrastructure: Iterations between checkpoints (one is also written at the end). Unit:
-    iterations. Neutral: none (at least 1)."""
+    """infrastructure: Iterations between two lines of ``metrics.jsonl`` and two checkpoints (a
+    line is also written at every phase end, a checkpoint at the end), so a resumed run repeats
+    fewer than this many iterations. Unit: iterations. Neutral: none (at least 1)."""
     device: str = "auto"
     """infrastructure: Where training runs: ``auto`` (CUDA when present, else the CPU), ``cpu``,
     ``cuda`` or ``cuda:N``. Unit: a device name. Neutral: none."""

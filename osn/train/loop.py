@@ -21,7 +21,7 @@ are never evaluated on its rays; no depth loss is used when the inputs carry no 
 Run directory: ``config.yaml``, ``inputs/`` (the per-object inputs used), ``run.json`` (the
 dataset path, provenance only; :mod:`osn.train.environment`'s record of what it trained with,
 and ``resumed_on`` for resumes on another kind of processor or torch build), ``checkpoint.pt``
-(atomic, every ``checkpoint_every`` iterations and at the end; has every RNG state, so
+(atomic, every ``eval_every`` iterations and at the end; has every RNG state, so
 ``--resume`` reproduces an uninterrupted run bit for bit on the same kind of CPU; CUDA's atomic adds make runs agree only up to rounding),
 ``metrics.jsonl`` (one JSON line per evaluation: wall time, iteration, phase, losses, training
 PSNR and, when the caller gives the exact region, the valid-set precision / recall / IoU and the
@@ -137,7 +137,7 @@ def _iterate(trainer: Trainer, monitor: TrainingMonitor, out: Path, stop: int, p
             rec = _metrics_record(trainer, ph, monitor)
             append_metrics(metrics_path, rec)
             bar.set_postfix(phase=ph.name, psnr=f"{rec['psnr']:.2f}", iou=f"{rec.get('iou', float('nan')):.3f}")
-        if it % cfg.checkpoint_every == 0 or it == stop:
+        if it % cfg.eval_every == 0 or it == stop:
             bad_params = trainer.non_finite_parameters()
             if bad_params:  # an update can blow the weights up while the step's loss was finite
                 raise TrainingDiverged.at(out, it, ph, f"non-finite weights in {', '.join(bad_params)}")

@@ -50,6 +50,8 @@ REMOVED_OPTIONS: dict[str, Any] = {"anchor_coverage": 0.9, "w_before_depth": 0.0
                                    "w_depth": 1.0, "w_seg": 0.01, "free_band": 4, "free_band_objects": 1,
                                    # a render shortcut below an 8-bit level: any value trained as today
                                    "skip_occluded": _any_value("skip_occluded"),
+                                   # checkpoints follow eval_every now: any cadence trained the same weights
+                                   "checkpoint_every": _any_value("checkpoint_every"),
                                    "free_space": _free_space_today}
 
 

@@ -21,7 +21,7 @@ def small_config(**kw: Any) -> TrainConfig:
     base = dict(
         stage1_iters=30, rounds=2, field_iters=10, scale_iters=10, final_scale_iters=10,
         rays_per_object=128, rays=256, depth_rays=32, samples=12, scale_samples=64,
-        label_stride=1, eval_every=20, checkpoint_every=25,
+        label_stride=1, eval_every=20,
         field=FieldConfig(kind="dense", resolution=24, initial_resolution=16, upsample_steps=1, anchor_planes=0),
         # At 24^3 the tiny room (~52 px across) is under-resolved, so ``auto`` would guide its
         # samples and give it colour planes, which 70 iterations do not train (PSNR +2.1 dB

@@ -21,7 +21,7 @@ from osn.train.auto import (
 from tests.osn.train.common import small_config
 
 
-@pytest.mark.parametrize("bad", [{"eval_every": 0}, {"checkpoint_every": 0}, {"samples": 0}, {"rounds": -1},
+@pytest.mark.parametrize("bad", [{"eval_every": 0}, {"samples": 0}, {"rounds": -1},
                                  {"w_free": -0.1}, {"scale_lr_final": 1.5}, {"rounds": "five"},
                                  {"label_replay": "high"}, {"label_stride": -1}, {"depth_robust": -1.0},
                                  {"depth_robust": "always"}])
@@ -136,13 +136,13 @@ def test_a_run_config_naming_the_options_that_became_constants_reads_at_their_va
 
 
 def test_a_run_config_naming_the_paper_weights_bands_and_field_rates_reads_at_their_values(tmp_path: Path) -> None:
-    """The paper's loss weights, the free-space bands, the render shortcut and the field kind's
-    grid rate and colour MLP width left the config: a run's config.yaml at the values that train
-    as today reads (the shortcut at any value; TensoRF's width at any value on a dense field, which
-    has no MLP), another is refused naming the key."""
+    """The paper's loss weights, the free-space bands, the render shortcut, the checkpoint cadence
+    and the field kind's grid rate and colour MLP width left the config: a run's config.yaml at the
+    values that train as today reads (the shortcut and the cadence at any value; TensoRF's width at
+    any value on a dense field, which has no MLP), another is refused naming the key."""
     d = TrainConfig().to_dict()
     old = {**d, "w_depth": 1.0, "w_seg": 0.01, "free_band": 4, "free_band_objects": 1, "skip_occluded": 1e-4,
-           "field": {**d["field"], "hidden": 64, "lr_grid": 0.2}}
+           "checkpoint_every": 2000, "field": {**d["field"], "hidden": 64, "lr_grid": 0.2}}
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(old))
     assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()

@@ -40,7 +40,7 @@ def test_training_improves_psnr_and_writes_metrics(tiny_dataset: Path, tiny_regi
 
 
 def test_resume_equals_uninterrupted(tiny_dataset: Path, tiny_region: ValidRegion, tmp_path: Path) -> None:
-    cfg = _cfg(checkpoint_every=17)
+    cfg = _cfg(eval_every=17)
     a = train(tmp_path / "a", cfg, inputs=oracle_inputs(tiny_dataset), region=tiny_region, progress=False)
     # Interrupted inside the first scale phase (the depth cache must be rebuilt identically),
     # then again inside a field phase.
@@ -196,7 +196,7 @@ def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
 
     monkeypatch.setattr(Trainer, "step_stage1", poisoned)
     with pytest.raises(TrainingDiverged, match=r"r: training diverged at iteration 28 \(stage1 phase\): loss .* is nan"):
-        train(tmp_path / "r", _cfg(), inputs=oracle_inputs(tiny_dataset), progress=False)
+        train(tmp_path / "r", _cfg(eval_every=25), inputs=oracle_inputs(tiny_dataset), progress=False)
     state = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     assert state["iteration"] == 25
     assert all(torch.isfinite(v).all() for sd in state["fields"] for v in sd.values())
@@ -212,7 +212,7 @@ def test_diverging_training_stops_with_one_line_and_keeps_the_last_checkpoint(
 
     monkeypatch.setattr(Trainer, "step_stage1", poisoned_after)
     with pytest.raises(TrainingDiverged, match=r"r2: training diverged at iteration 25 .*non-finite weights in field"):
-        train(tmp_path / "r2", _cfg(), inputs=oracle_inputs(tiny_dataset), progress=False)
+        train(tmp_path / "r2", _cfg(eval_every=25), inputs=oracle_inputs(tiny_dataset), progress=False)
     assert not (tmp_path / "r2" / "checkpoint.pt").exists()
 
 
@@ -221,7 +221,7 @@ def test_alone_terms_and_scale_lr_decay_train_and_resume_exactly(tiny_dataset: P
     `scale_lr_final` decays the scale network's rate by a cosine within every scale phase, from
     `scale_lr` at its first step to `scale_lr * scale_lr_final` at its last; both survive a resume
     bit for bit (the rate is a function of the iteration)."""
-    cfg = _cfg(w_alone=1.0, scale_lr_final=0.1, checkpoint_every=17)
+    cfg = _cfg(w_alone=1.0, scale_lr_final=0.1, eval_every=17)
     trainer = Trainer(oracle_inputs(tiny_dataset), cfg, torch.device("cpu"))
     scale = [p for p in trainer.schedule if p.name == "scale"][0]
     trainer.iteration = scale.start

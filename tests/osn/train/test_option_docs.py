@@ -78,7 +78,7 @@ def test_paper_options_cite_the_paper_and_additions_cite_experiments_that_exist(
                   "w_distortion", "w_hidden_smooth", "w_edge", "w_alone", "depth_robust",
                   "final_label_trim", "pair_minority", "label_replay", "anchor_bias",
                   "anchor_guide_samples", "field.object_resolution", "field.anchor_planes"]),
-    ("infrastructure", ["seed", "eval_every", "checkpoint_every", "device"]),
+    ("infrastructure", ["seed", "eval_every", "device"]),
 ])
 def test_the_options_fall_in_their_categories(kind: str, names: list[str]) -> None:
     options = _options()

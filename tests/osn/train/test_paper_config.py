@@ -38,7 +38,7 @@ NEUTRAL = {
 REPRESENTATION = {"field.kind"}
 #: What may differ between the CPU-size and the GPU-size paper configs: sizes, not the method.
 SIZES = {"field", "stage1_iters", "field_iters", "scale_iters", "rays_per_object", "rays", "depth_rays", "samples",
-         "eval_every", "checkpoint_every"}
+         "eval_every"}
 
 
 def _value(cfg: TrainConfig, name: str):
@@ -77,7 +77,7 @@ def test_the_paper_config_trains_and_samples(tiny_dataset: Path, tmp_path: Path)
     """Its options together run through every phase on the tiny scene (iterations cut down)."""
     d = TrainConfig.from_yaml(PAPER).to_dict()
     d.update(stage1_iters=40, rounds=2, field_iters=10, scale_iters=10, rays_per_object=128, rays=256, depth_rays=32,
-             samples=12, scale_samples=64, eval_every=20, checkpoint_every=25)
+             samples=12, scale_samples=64, eval_every=20)
     d["field"].update(resolution=24, initial_resolution=16, upsample_steps=1)
     run = train(tmp_path / "run", TrainConfig.from_dict(d), inputs=oracle_inputs(tiny_dataset), progress=False)
     m = read_metrics(run / "metrics.jsonl")
