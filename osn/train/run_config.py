@@ -25,7 +25,8 @@ def _free_space_today(d: dict[str, Any]) -> str:
 
 
 def _any_value(key: str) -> Callable[[dict[str, Any]], Any]:
-    """For a removed option that only sized what the monitor measures: whatever the run held
+    """For a removed option whose value changed no trained weight (what the monitor measures,
+    a render shortcut below an 8-bit level, the checkpoint cadence): whatever the run held
     trained as today."""
     return lambda d: d.get(key)
 
