@@ -93,7 +93,7 @@ def _anchor_points_near_objects(st: SceneTensors) -> tuple[torch.Tensor, torch.T
             continue
         near = F.max_pool2d((lab == k).float()[:, None], 2 * BIAS_BAND + 1, stride=1, padding=BIAS_BAND)
         m = near.reshape(-1)[flat] > 0
-        out_flat.append(flat[m]), out_depth.append(depth[m]), out_obj.append(torch.full((int(m.sum()),), k))
+        out_flat.append(flat[m]), out_depth.append(depth[m]), out_obj.append(torch.full((int(m.sum()),), k, device=st.device))
     # Behind: every anchor point in the anchor's frame, then in each other frame's camera.
     poses = st.poses[a].double()  # (T, 4, 4) camera-to-anchor
     frames = st.sp_frame[sel]
@@ -111,9 +111,9 @@ def _anchor_points_near_objects(st: SceneTensors) -> tuple[torch.Tensor, torch.T
         covering = lab[g, uv[:, 1], uv[:, 0]]
         hidden = (covering >= 0) & (covering != a)
         out_flat.append(g * HW + uv[hidden, 1] * st.W + uv[hidden, 0])
-        out_depth.append(zf[hidden]), out_obj.append(covering[hidden].cpu())
+        out_depth.append(zf[hidden]), out_obj.append(covering[hidden].long())
     cat = torch.cat
-    return cat(out_flat), cat(out_depth), cat(out_obj).to(st.device)
+    return cat(out_flat), cat(out_depth), cat(out_obj)
 
 
 @torch.no_grad()
