@@ -164,7 +164,9 @@ def contested_rays(st: SceneTensors, flat: torch.Tensor, depth: torch.Tensor, co
 
 def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, iteration: int) -> dict:
     """The contested rays of the current fields: ``flat (P,)``, ``depth (P, K)``,
-    ``covered (P, K)``, ``gt (P,)`` and their ``constraints`` (:class:`OrderConstraints`).
+    ``covered (P, K)``, ``gt (P,)`` and their ``constraints`` (:class:`OrderConstraints`), and
+    ``anchor_bias (K,)``, the log correction applied to the anchor's depth on each object's rays
+    (``cfg.anchor_bias`` times :func:`anchor_bias`; zeros, unmeasured, where the option is 0).
 
     Deterministic given the fields, so a resumed scale phase rebuilds the same pool.
     ``iteration`` (the phase's first) only goes into the warning when no ray is contested.

@@ -125,8 +125,9 @@ def test_the_pool_reads_the_anchor_at_the_depth_its_own_depths_give_beside_each_
     assert torch.equal(before["anchor_bias"], bias)
     off = build_label_pool(st, tr.fields, dataclasses.replace(cfg, anchor_bias=0.0), 0)  # the paper's reading
     assert not off["anchor_bias"].any()
-    common = [i for i, f in enumerate(before["flat"].tolist()) if f in set(off["flat"].tolist())]
-    at = {int(f): i for i, f in enumerate(off["flat"])}
+    at = {f: i for i, f in enumerate(off["flat"].tolist())}
+    common = [i for i, f in enumerate(before["flat"].tolist()) if f in at]
+    assert common  # the two pools share rays
     rendered = off["depth"][[at[int(before["flat"][i])] for i in common], a]
     assert torch.allclose(before["depth"][common, a], rendered * torch.exp(-bias[before["gt"][common]]).float(), rtol=1e-5)
     st.sp_depth[st.sp_obj == a] *= 1.1
