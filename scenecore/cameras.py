@@ -122,6 +122,22 @@ def project(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[n
     return uv, z
 
 
+def project_pixels(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: int, height: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Project world points ``(N, 3)`` onto the pixels of a ``width`` x ``height`` image.
+
+    Returns ``(uv, depth, pix, inside)``: :func:`project`'s continuous ``uv (N, 2)`` and planar
+    ``depth (N,)``, the integer pixel ``pix (N, 2)`` = (column, row) each point falls in (``-1``
+    behind the camera), and ``inside (N,)``: in front of the camera and within the image.
+    """
+    uv, z = project(points_world, K, c2w)
+    front = z > 0
+    pix = np.full((len(z), 2), -1, dtype=np.int64)
+    pix[front] = np.floor(uv[front]).astype(np.int64)
+    inside = front & (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+    return uv, z, pix, inside
+
+
 def invert_pose(T: np.ndarray) -> np.ndarray:
     """Inverse of rigid or similarity transform(s) ``(..., 4, 4)`` with last row ``0 0 0 1``."""
     T = np.asarray(T, dtype=np.float64)

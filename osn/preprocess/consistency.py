@@ -75,7 +75,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from scenecore.cameras import pixel_rays, project
+from scenecore.cameras import pixel_rays, project_pixels
 
 #: A frame contradicts its masks when more than this share of the object's points miss there.
 FRAME_MISS = 0.5
@@ -118,18 +118,6 @@ def _thinned(points: list[np.ndarray], most: int = MAX_POINTS) -> list[np.ndarra
     return [p if len(p) <= most else p[np.linspace(0, len(p) - 1, most).astype(np.int64)] for p in points]
 
 
-def _pixels(points: np.ndarray, cam_to_obj: np.ndarray, K: np.ndarray, width: int, height: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Projection of object-frame ``points`` into the camera ``cam_to_obj``: continuous ``uv``,
-    planar depth, integer pixels, and whether each lands in front of the camera inside the image."""
-    uv, z = project(points, K, cam_to_obj)
-    front = z > 0
-    pix = np.full((len(z), 2), -1, dtype=np.int64)
-    pix[front] = np.floor(uv[front]).astype(np.int64)
-    inside = front & (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
-    return uv, z, pix, inside
-
-
 def mask_misses(frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndarray], masks: np.ndarray,
                 object_id: int, anchor: int, K: np.ndarray, tol_px: float) -> np.ndarray:
     """``(F, F)``: entry ``[i, j]`` is the share of frame i's points that, projected into frame j,
@@ -155,7 +143,7 @@ def mask_misses(frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndar
         for i in np.flatnonzero(pairs[:, j]):
             if not len(points[i]):
                 continue
-            _, _, pix, inside = _pixels(points[i], cam_to_obj[j], K, W, H)
+            _, _, pix, inside = project_pixels(points[i], K, cam_to_obj[j], W, H)
             u, v = pix[inside, 0], pix[inside, 1]
             tested = ~hide[v, u]
             if tested.any():
@@ -199,7 +187,7 @@ def depth_disagreement(cam_to_obj: np.ndarray, sparse_pix: list[np.ndarray], spa
         for i in np.flatnonzero(pairs[:, j]):
             if not len(points[i]):
                 continue
-            uv, z, _, inside = _pixels(points[i], cam_to_obj[j], K, width, height)
+            uv, z, _, inside = project_pixels(points[i], K, cam_to_obj[j], width, height)
             if not inside.any():
                 continue
             dist, idx = tree.query(uv[inside], distance_upper_bound=max(tol_px, 0.5))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scenecore.cameras import invert_pose, pixel_rays
+from scenecore.cameras import pixel_rays, project_pixels
 
 #: Relative depth by which a point must lie in front of a frame's observed depths, and the share
 #: of the testing frames that must see it so, for :func:`occluding_flags`.
@@ -60,7 +60,6 @@ def occlusion_tests(
     cell = max(1, int(round(CELL_FRACTION * max(width, height))))
     gh, gw = -(-height // cell), -(-width // cell)
     observed = [_cell_medians(pix, dep, cell, gh, gw) for pix, dep in zip(sparse_pix, sparse_depth)]
-    obj_to_cam = np.stack([invert_pose(M) for M in cam_to_obj])
     out = []
     for i, (pix, dep) in enumerate(zip(sparse_pix, sparse_depth)):
         dep = np.asarray(dep, dtype=np.float64)
@@ -72,14 +71,7 @@ def occlusion_tests(
             for j in range(len(cam_to_obj)):
                 if j == i:
                     continue
-                q = pts @ obj_to_cam[j, :3, :3].T + obj_to_cam[j, :3, 3]
-                z = q[:, 2]
-                front = z > 0
-                uv = np.full((len(z), 2), -1, dtype=np.int64)
-                if front.any():
-                    proj = q[front] @ K.T
-                    uv[front] = np.floor(proj[:, :2] / proj[:, 2:3]).astype(np.int64)
-                inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+                _, z, uv, inside = project_pixels(pts, K, cam_to_obj[j], width, height)
                 seen = np.zeros(len(z))
                 seen[inside] = observed[j][uv[inside, 1] // cell, uv[inside, 0] // cell]
                 test = seen > 0

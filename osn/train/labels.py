@@ -15,6 +15,7 @@ import logging
 import torch
 import torch.nn.functional as F
 
+from scenecore.cameras import project_pixels
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
 from osn.model.volume import SKIP_OCCLUDED, render_by_hits
@@ -99,15 +100,11 @@ def _anchor_points_near_objects(st: SceneTensors) -> tuple[torch.Tensor, torch.T
     frames = st.sp_frame[sel]
     cam = depth[:, None] * st.dirs[st.sp_pix[sel]].double()  # camera frame: dirs have z = 1
     pts = torch.einsum("nij,nj->ni", poses[frames, :3, :3], cam) + poses[frames, :3, 3]
-    K = torch.as_tensor(st.inputs.K, dtype=torch.float64, device=st.device)
+    pts_np, frames_np, poses_np = pts.cpu().numpy(), frames.cpu().numpy(), poses.cpu().numpy()
     for g in torch.nonzero(st.present[a])[:, 0].tolist():
-        other = frames != g
-        q = (pts[other] - poses[g, :3, 3]) @ poses[g, :3, :3]  # R^T (p - t), row vectors
-        z = q[:, 2]
-        front = z > 0
-        uv = torch.floor((q[front] @ K.T)[:, :2] / z[front, None]).long()
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < st.W) & (uv[:, 1] >= 0) & (uv[:, 1] < st.H)
-        uv, zf = uv[inside], z[front][inside]
+        _, z, pix, inside = project_pixels(pts_np[frames_np != g], st.inputs.K, poses_np[g], st.W, st.H)
+        uv = torch.from_numpy(pix[inside]).to(st.device)
+        zf = torch.from_numpy(z[inside]).to(st.device)
         covering = lab[g, uv[:, 1], uv[:, 0]]
         hidden = (covering >= 0) & (covering != a)
         out_flat.append(g * HW + uv[hidden, 1] * st.W + uv[hidden, 0])

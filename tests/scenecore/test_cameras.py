@@ -44,14 +44,19 @@ def test_bad_fov_rejected():
         C.intrinsics_from_fov(0.0, 10, 10)
 
 
-def test_rays_hit_known_points():
-    rng = np.random.default_rng(1)
-    W, H = 32, 24
+def camera_and_pixels(seed: int, W: int = 32, H: int = 24, n: int = 50):
+    """A random camera's intrinsics and pose, and ``n`` random pixels with planar depths."""
+    rng = np.random.default_rng(seed)
     K = C.intrinsics_from_fov(55.0, W, H)
     c2w = random_pose(rng)
+    pix = np.stack([rng.integers(0, W, n), rng.integers(0, H, n)], axis=1)
+    return rng, K, c2w, pix, rng.uniform(0.01, 1e3, n)
+
+
+def test_rays_hit_known_points():
+    W, H = 32, 24
+    _, K, c2w, pix, depth = camera_and_pixels(1, W, H)
     # Points placed exactly on pixel-centre rays at known planar depths are recovered.
-    pix = np.stack([rng.integers(0, W, 50), rng.integers(0, H, 50)], axis=1)
-    depth = rng.uniform(0.01, 1e3, 50)
     o, d = C.pixel_rays(K, c2w, W, H, pixels=pix)
     pts = o + depth[:, None] * d
     uv, z = C.project(pts, K, c2w)
@@ -62,6 +67,23 @@ def test_rays_hit_known_points():
     assert d.shape == (W * H, 3)
     assert np.allclose(d[0], [(0.5 - W / 2) / K[0, 0], (0.5 - H / 2) / K[1, 1], 1.0])
     assert np.allclose(d[1, 0] - d[0, 0], 1 / K[0, 0])
+
+
+def test_project_pixels_finds_the_pixel_of_each_point():
+    W, H = 32, 24
+    rng, K, c2w, pix, depth = camera_and_pixels(2, W, H)
+    # Points inside known pixels (offsets within the pixel) land in those pixels, at their depths.
+    x = (pix + rng.uniform(0.05, 0.95, (50, 2)) - K[:2, 2]) / np.diag(K)[:2]
+    cam = np.concatenate([x * depth[:, None], depth[:, None]], axis=1)
+    pts = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    # and three that do not: behind the camera, left of the image, below it.
+    extra = np.array([[0.0, 0.0, -1.0], [-2.0 * W / K[0, 0], 0.0, 1.0], [0.0, 2.0 * H / K[1, 1], 1.0]])
+    pts = np.concatenate([pts, extra @ c2w[:3, :3].T + c2w[:3, 3]])
+    uv, z, got, inside = C.project_pixels(pts, K, c2w, W, H)
+    assert np.array_equal(got[:50], pix) and inside[:50].all()
+    assert np.allclose(z[:50], depth, rtol=1e-10)
+    assert not inside[50:].any() and (got[50] == -1).all() and got[51, 0] < 0 and got[52, 1] >= H
+    assert np.allclose(uv, C.project(pts, K, c2w)[0])
 
 
 def test_scale_about_keeps_center_and_camera_ray():
