@@ -5,6 +5,7 @@ What an ``auto`` option becomes on a scene's inputs is :mod:`osn.train.auto`'s."
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -14,7 +15,9 @@ import yaml
 from scenecore.config import Rule, from_dict, integer, number, validate
 
 from osn.model.fields import FieldConfig
-from osn.train.run_config import upgrade_run_config
+from osn.train.run_config import drop_removed_options, upgrade_run_config
+
+log = logging.getLogger(__name__)
 
 #: Counts that must be >= 1 (a 0 would divide by zero or render nothing).
 _POSITIVE = ("rays_per_object", "rays", "samples", "scale_samples", "eval_every")
@@ -242,11 +245,18 @@ class TrainConfig:
 
         Omitted keys take the defaults, except with ``run_config`` (a run's own ``config.yaml``,
         which lists every key it trained with), read through :func:`osn.train.run_config.upgrade_run_config`.
+        Options this version no longer has are ignored, with a warning, where they hold the value
+        that trains as today (an older run's ``config.yaml`` given as a config), and refused otherwise.
         """
         try:
             d = yaml.safe_load(Path(path).read_text()) or {}
             if run_config and isinstance(d, dict):
                 d = upgrade_run_config(d)
+            elif isinstance(d, dict):
+                d, dropped = drop_removed_options(d, "sets")
+                if dropped:
+                    log.warning("%s: %s no longer an option (trains as today at the value given); ignored",
+                                path, ", ".join(dropped))
             return cls.from_dict(d)
         except (ValueError, TypeError, yaml.YAMLError) as e:
             raise ValueError(f"{path}: {e}") from None

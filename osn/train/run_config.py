@@ -62,24 +62,36 @@ AUTO_BEFORE: dict[str, str] = {"w_hidden_smooth": "0.3 on the oracle's inputs, 0
                                "final_label_trim": "0.002 on the oracle's inputs, 0.003 on others"}
 
 
-def upgrade_run_config(d: dict[str, Any]) -> dict[str, Any]:
-    """A run's own ``config.yaml`` (every key it trained with) as today's options: keys added since
-    take the value it trained with (:data:`ADDED_LATER`), removed ones are dropped where they held
-    the value that trains as today (:data:`REMOVED_OPTIONS`), so resuming or comparing an older run
-    switches no term on or off. ``ValueError`` naming the key where it cannot be read so."""
-    if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
-        raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
-                         + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
-                         + ": write the number into the file to resume or compare the run")
+def drop_removed_options(d: dict[str, Any], verb: str = "trained with") -> tuple[dict[str, Any], list[str]]:
+    """Config ``d`` without the options this version no longer has, and their names: each is
+    dropped where it holds the value that trains as today (:data:`REMOVED_OPTIONS`,
+    ``FIELD_REMOVED_OPTIONS`` as ``field.<key>``). ``ValueError`` naming the key (``"<verb> key:
+    value"``) where it holds another value: that behaviour is gone."""
     field = d.get("field") if isinstance(d.get("field"), dict) else None
     # Each removed option's value today in this config.
     today = {k: n(d) if callable(n) else n for k, n in REMOVED_OPTIONS.items()}
     today.update({f"field.{k}": v(field or {}) if callable(v) else v for k, v in FIELD_REMOVED_OPTIONS.items()})
     named = {**d, **{f"field.{k}": v for k, v in (field or {}).items()}}
     if gone := [k for k, v in named.items() if k in today and v != today[k]]:
-        raise ValueError("trained with " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this version no "
+        raise ValueError(f"{verb} " + ", ".join(f"{k}: {named[k]!r}" for k in gone) + ", which this version no "
                          "longer has (it trains as " + ", ".join(f"{k}: {today[k]!r}" for k in gone) + ")")
-    out = {**ADDED_LATER, **{k: v for k, v in d.items() if k not in today}}
+    out = {k: v for k, v in d.items() if k not in today}
     if field is not None:
-        out["field"] = {**FIELD_ADDED_LATER, **{k: v for k, v in field.items() if k not in FIELD_REMOVED_OPTIONS}}
+        out["field"] = {k: v for k, v in field.items() if k not in FIELD_REMOVED_OPTIONS}
+    return out, [k for k in named if k in today]
+
+
+def upgrade_run_config(d: dict[str, Any]) -> dict[str, Any]:
+    """A run's own ``config.yaml`` (every key it trained with) as today's options: keys added since
+    take the value it trained with (:data:`ADDED_LATER`), removed ones are dropped where they held
+    the value that trains as today (:func:`drop_removed_options`), so resuming or comparing an older
+    run switches no term on or off. ``ValueError`` naming the key where it cannot be read so."""
+    if old := [k for k in AUTO_BEFORE if d.get(k) == "auto"]:
+        raise ValueError("written before " + ", ".join(old) + " became one number for every input; "
+                         + "; ".join(f"its auto trained with {AUTO_BEFORE[k]}" for k in old)
+                         + ": write the number into the file to resume or compare the run")
+    kept, _ = drop_removed_options(d)
+    out = {**ADDED_LATER, **kept}
+    if isinstance(kept.get("field"), dict):
+        out["field"] = {**FIELD_ADDED_LATER, **kept["field"]}
     return out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -65,18 +66,22 @@ def test_a_run_config_written_before_a_new_term_keeps_it_off(tmp_path: Path) -> 
     assert TrainConfig.from_yaml(path, run_config=True) == dataclasses.replace(TrainConfig(), w_distortion=0.0)
 
 
-def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path) -> None:
+def test_a_run_config_that_names_a_removed_option_still_reads(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A run's config.yaml written while ``anchor_coverage`` existed reads as today's config (the
-    option is dropped: the anchor covers as every object does); a user's config naming it is an error."""
+    option is dropped: the anchor covers as every object does); given as a config (``--config``)
+    it reads too, with a warning naming the ignored option."""
     path = tmp_path / "config.yaml"
-    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "anchor_coverage": 0.9}))
+    path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "anchor_coverage": 0.9, "checkpoint_every": 250}))
     assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
-    with pytest.raises(ValueError, match="anchor_coverage"):
-        TrainConfig.from_yaml(path)
+    with caplog.at_level(logging.WARNING, logger="osn.train.config"):
+        assert TrainConfig.from_yaml(path) == TrainConfig()
+    assert f"{path}: anchor_coverage, checkpoint_every no longer an option" in caplog.text
     # One trained with a removed option away from today's behaviour is refused, naming it.
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "w_before_depth": 1.0}))
     with pytest.raises(ValueError, match=r"trained with w_before_depth: 1.0, which this version no longer has"):
         TrainConfig.from_yaml(path, run_config=True)
+    with pytest.raises(ValueError, match=rf"^{path}: sets w_before_depth: 1.0, which this version no longer has"):
+        TrainConfig.from_yaml(path)
     # A paper value that is a constant now: read at that value, refused at another.
     path.write_text(yaml.safe_dump({**TrainConfig().to_dict(), "coverage_threshold": 0.9, "valid_threshold": 0.95}))
     assert TrainConfig.from_yaml(path, run_config=True) == TrainConfig()
