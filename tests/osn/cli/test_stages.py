@@ -107,7 +107,9 @@ def test_background_stage_runs_beside_the_next_and_is_waited_for_where_needed(tm
     assert seen == {"beside": False, "needing": True}
     assert list(rec) == ["bg", "beside", "idle", "needing"]
     assert rec["bg"]["background"] and rec["bg"]["summary"] == {"wrote": True}
-    assert 0.5 <= rec["bg"]["seconds"] < flag_at + 0.5  # its own end, not when "needing" waited for it
+    # Its own end, not when "needing" waited for it (1 s after the flag): a child at the lowest
+    # priority on a loaded machine may take a good part of that second to exit after writing.
+    assert 0.5 <= rec["bg"]["seconds"] < flag_at + 1.0
     assert rec["bg"]["waited"] < 0.1  # it had ended during "idle"
     assert any("bg: done in" in ln and "in the background" in ln for ln in lines)
     if shutil.which("nice"):
