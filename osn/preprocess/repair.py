@@ -15,7 +15,7 @@ if that fails too, the frame is dropped. Frames that pass are only bundle-adjust
 What it cannot see: an error that moves points along their epipolar lines (a camera moving
 sideways, turned about its vertical axis; in the tests a turn about the optical axis drops a
 frame's consistency nearly to zero, the same turn about the vertical axis far less), and a whole model
-that is consistently wrong (a reversed twin, :func:`osn.preprocess.sfm._best_of_restarts`).
+that is consistently wrong (a reversed twin, :mod:`osn.preprocess.twin`).
 """
 
 from __future__ import annotations

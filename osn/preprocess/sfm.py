@@ -3,7 +3,8 @@
 For every object, SIFT features are extracted only inside its mask, matched (exhaustively for
 short videos, sequentially for long ones) and reconstructed by incremental mapping with the known,
 shared pinhole camera (no intrinsics refinement); frames posed against their own matches are
-repaired (:mod:`osn.preprocess.repair`). Each object's reconstruction has its own frame and unit;
+repaired (:mod:`osn.preprocess.repair`), and the model is compared with its depth-reversed twin
+(:mod:`osn.preprocess.twin`). Each object's reconstruction has its own frame and unit;
 :mod:`osn.preprocess.video` turns a whole video's reconstructions into per-object inputs.
 
 No GUI, every random seed fixed, single-threaded where threads change results.
@@ -26,6 +27,7 @@ from scenecore.config import choice, flag, integer, number, validate
 from osn.preprocess.inputs import BOX_PADDING, NORMALISATION_RULES, SCENE_FAR_FACTOR, SCENE_NEAR_FACTOR, InputsError
 from osn.preprocess.repair import bundle_adjust, repair_registrations
 from osn.preprocess.sift_frames import GREY_MODES, crop_box, write_colmap_images
+from osn.preprocess.twin import resolve_twin
 
 log = logging.getLogger(__name__)
 
@@ -224,6 +226,8 @@ class ObjectSfM:
     restarts: list[dict] = field(default_factory=list)
     #: Frames whose pose contradicted their verified matches, and what was done (osn.preprocess.repair).
     repaired_frames: list[dict] = field(default_factory=list)
+    #: The kept model against its depth-reversed twin (:func:`osn.preprocess.twin.resolve_twin`).
+    twin: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -310,8 +314,13 @@ def _reconstruct_in(
         rec, db, np.diag([u, u, 1.0]) @ K, 2.0 * cfg.epipolar_error * u, cfg.min_epipolar_consistency,
         cfg.abs_pose_min_inliers, cfg.seed,
     )
-    if cfg.final_cauchy_px > 0:
-        bundle_adjust(rec, cfg.final_cauchy_px * u)
+    cauchy = cfg.final_cauchy_px * u if cfg.final_cauchy_px > 0 else None
+    if cauchy is not None:
+        bundle_adjust(rec, cauchy)
+    rec, twin = resolve_twin(rec, cauchy, pixel_scale=u)
+    if twin.get("reversed"):
+        log.warning("%s: its depth-reversed twin fits its matches better (median error %.3f px, the model SfM "
+                    "kept %.3f px): the twin is kept instead", label, twin["twin_median_error_px"], twin["median_error_px"])
     if keep_model:
         (work / "model").mkdir()
         rec.write(str(work / "model"))
@@ -319,6 +328,7 @@ def _reconstruct_in(
     sfm.reprojection_error_px = rec.compute_mean_reprojection_error() / cfg.upscale
     sfm.restarts = tried
     sfm.repaired_frames = repaired
+    sfm.twin = twin
     return sfm
 
 
@@ -399,7 +409,9 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
     settle in either, and the reversed one turns its rotations the wrong way, by an error that
     grows along the video (gnome-house's sofa). Under full perspective the twin fits worse, so
     among the restarts the one registering the most frames with the lowest mean reprojection
-    error wins (on that sofa the true model's error is below every reversed one's).
+    error wins (on that sofa the true model's error is below every reversed one's). The restarts
+    share their initial pair and can all settle in the twin: :mod:`osn.preprocess.twin` then
+    builds it from the kept model.
 
     Each run is single-threaded with its own options and seed, and COLMAP's random generator is
     per thread, so runs side by side give the models they give one after the other (the demo's

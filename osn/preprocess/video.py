@@ -266,6 +266,7 @@ def _object_report(oid: int, name: str, sfm: ObjectSfM, flags: list[np.ndarray],
         "reprojection_error_px": sfm.reprojection_error_px,
         "restarts": sfm.restarts,
         "repaired_frames": sfm.repaired_frames,
+        "twin": sfm.twin,
         # Depths in front of what the other frames saw: phantoms, counted without ground truth.
         "sparse_depths": int(sum(len(d) for d in sfm.sparse_depth)),
         "occluding_depths": int(sum(f.sum() for f in flags)),
@@ -295,6 +296,9 @@ def report_lines(objects: list[dict]) -> list[str]:
         for f in r.get("repaired_frames", []):
             lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "
                          f"matches fit SfM's pose, {100 * f['consistency_after']:.1f}% after)")
+        if r.get("twin", {}).get("reversed"):
+            lines.append(f"    depth-reversed twin taken: median reprojection error {r['twin']['twin_median_error_px']:.3f} px, "
+                         f"SfM's model {r['twin']['median_error_px']:.3f} px")
         if r.get("consistency", {}).get("message"):
             lines.append(f"    {r['consistency']['action']}: {r['consistency']['message']}")
     return lines

@@ -488,6 +488,56 @@ def test_final_robust_bundle_adjustment_lowers_rotation_errors(sfm_scene):
     assert all(robust[k] < plain[k] for k in plain), means
 
 
+def test_a_depth_reversed_model_is_turned_back(sfm_scene, tmp_path):
+    """A model settled in its depth-reversed twin (what SfM kept of a small L-shaped mover on a
+    development scene: every point on the masks, poses no similarity maps onto the truth) is
+    replaced by its own twin, which fits the matches better and is the true model; a true model
+    is kept. The twin is built here by reversing a correct model and bundle-adjusting the result."""
+    import pycolmap
+
+    from scenecore import dataset as D
+    from scenecore.cameras import fit_pose_similarity, invert_pose, rotation_angle_deg
+    from osn.preprocess.repair import bundle_adjust
+    from osn.preprocess.twin import TWIN_ADJUSTMENTS, resolve_twin, reversed_twin
+
+    scene = D.load_scene(sfm_scene)
+    orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
+    cfg = PreprocessConfig()
+    cauchy = cfg.final_cauchy_px * cfg.upscale
+
+    def worst_rotation_error(rec, oid: int) -> float:
+        """Degrees, after the similarity that best maps the model's cameras onto the truth (inf
+        when none does: cameras whose centres run the wrong way)."""
+        frames, truth = alignment.true_camera_poses(scene, orc.masks, oid)
+        slot = {int(t): i for i, t in enumerate(frames)}
+        ims = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+        ours = np.stack([invert_pose(np.r_[np.asarray(im.cam_from_world().matrix()), [[0, 0, 0, 1]]]) for im in ims])
+        gt = truth[[slot[int(Path(im.name).stem)] for im in ims]]
+        try:
+            S = fit_pose_similarity(ours, gt)
+        except ValueError:
+            return float("inf")
+        R = S[:3, :3] / np.cbrt(np.linalg.det(S[:3, :3]))
+        return max(rotation_angle_deg(R @ a[:3, :3], b[:3, :3]) for a, b in zip(ours, gt))
+
+    models = {}
+    for oid in (1, 2):
+        sfm = reconstruct_object(orc.images, orc.masks, oid, orc.K, cfg, "o", work_dir=tmp_path / str(oid))
+        assert sfm.twin["reversed"] is False and sfm.twin["twin_better_share"] < 0.5, sfm.twin
+        models[oid] = pycolmap.Reconstruction(str(tmp_path / str(oid) / "model"))
+        assert worst_rotation_error(models[oid], oid) < 5.0
+        kept, record = resolve_twin(models[oid], cauchy)
+        assert kept is models[oid] and not record["reversed"]
+    wrong = reversed_twin(models[1])
+    for _ in range(TWIN_ADJUSTMENTS):
+        bundle_adjust(wrong, cauchy)
+    assert worst_rotation_error(wrong, 1) > 20.0  # a twin that fits its masks, far from the truth
+    back, record = resolve_twin(wrong, cauchy)
+    assert record["reversed"] and record["twin_better_share"] > 0.6, record
+    assert record["twin_median_error_px"] < record["median_error_px"]
+    assert worst_rotation_error(back, 1) < 5.0
+
+
 def test_crop_box_holds_the_object_and_the_principal_point():
     masks = np.zeros((3, 100, 200), dtype=bool)
     masks[0, 60:70, 150:160] = True

@@ -1,0 +1,127 @@
+"""The depth-reversed twin of a reconstruction, fitted and compared with the model SfM kept.
+
+A small object seen nearly in weak perspective has two reconstructions that fit its images
+almost equally: the true one and its depth-reversed twin (the Necker reversal), whose relief is
+inverted and whose rotations turn the wrong way, by an error that grows along the video. The
+twin projects every point onto the object's masks, so no mask or depth check can tell them apart
+(:mod:`osn.preprocess.consistency`), and the mapper's restarts may all settle in it: they start
+from the same initial pair. Under full perspective only one of the two fits the matches exactly.
+
+So the kept model's twin is built explicitly (:func:`reversed_twin`), bundle-adjusted, and taken
+in its place when it fits the matches better (:func:`resolve_twin`), the rule the restarts are
+chosen by, compared point by point over the 3D points both models hold: the twin is taken when
+its reprojection error is lower at significantly more than half of them (a one-sided sign test at
+:data:`TWIN_SIGNIFICANCE`). On a model of few points seen in few pixels the two fits differ by
+noise, about half the points either way, and swapping would trade one poorly constrained model for
+another. A model that fills the frame (the anchor) has a twin far worse than itself, and the test
+keeps it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import binomtest
+
+from osn.preprocess.repair import bundle_adjust
+
+#: Bundle adjustments of the twin before the comparison: it starts pixels off its own optimum (the
+#: reversal is exact only under affine projection).
+TWIN_ADJUSTMENTS = 3
+
+#: Significance of the sign test that the twin fits more points better than the kept model.
+TWIN_SIGNIFICANCE = 0.01
+
+
+def reversed_twin(rec):
+    """A copy of ``rec`` (a ``pycolmap.Reconstruction``) with its depth relief reversed.
+
+    Every registered camera keeps the points' centroid (the median of the 3D points) where it
+    saw it and sees the offsets from it mirrored along its optical axis: camera-from-world rotation
+    ``R -> diag(-1, -1, 1) R``, translation so that the centroid's camera coordinates stay. Under
+    affine projection this reproduces every image exactly; under perspective it is the start of
+    the twin's basin. Each track is triangulated anew (linear, from all its observations) from
+    these cameras; points that land behind one of them are deleted.
+    """
+    import pycolmap
+
+    twin = pycolmap.Reconstruction(rec)
+    centre = np.median(np.stack([p.xyz for p in twin.points3D.values()]), axis=0)
+    mirror = np.diag([-1.0, -1.0, 1.0])
+    projection = {}
+    for im in twin.images.values():
+        if not im.has_pose:
+            continue
+        M = np.asarray(im.cam_from_world().matrix())
+        R = mirror @ M[:, :3]
+        t = M[:, :3] @ centre + M[:, 3] - R @ centre
+        twin.frames[im.frame_id].set_cam_from_world(im.camera_id, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+        projection[im.image_id] = twin.cameras[im.camera_id].calibration_matrix() @ np.c_[R, t]
+    for pid in list(twin.point3D_ids()):
+        track = [(projection[el.image_id], twin.images[el.image_id].points2D[el.point2D_idx].xy)
+                 for el in twin.point3D(pid).track.elements]
+        X = _triangulate(track)
+        if X is None:
+            twin.delete_point3D(pid)
+        else:
+            twin.point3D(pid).xyz = X
+    return twin
+
+
+def _triangulate(track: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
+    """Linear (DLT) triangulation of one track of ``(P (3, 4), xy (2,))``; None when the point is
+    at infinity or behind any of the cameras."""
+    rows = []
+    for P, (x, y) in track:
+        rows += [x * P[2] - P[0], y * P[2] - P[1]]
+    Xh = np.linalg.svd(np.asarray(rows))[2][-1]
+    if abs(Xh[3]) < 1e-12 * np.abs(Xh[:3]).max():
+        return None
+    X = Xh[:3] / Xh[3]
+    if any(P[2, :3] @ X + P[2, 3] <= 0 for P, _ in track):
+        return None
+    return X
+
+
+def _drop_points_behind(rec) -> None:
+    """Delete the 3D points of ``rec`` that lie behind a camera observing them."""
+    cam_from_world = {i: np.asarray(im.cam_from_world().matrix()) for i, im in rec.images.items() if im.has_pose}
+    for pid in list(rec.point3D_ids()):
+        X = rec.point3D(pid).xyz
+        if any(cam_from_world[el.image_id][2, :3] @ X + cam_from_world[el.image_id][2, 3] <= 0
+               for el in rec.point3D(pid).track.elements):
+            rec.delete_point3D(pid)
+
+
+def point_errors(rec) -> dict[int, float]:
+    """``point3D_id -> `` mean reprojection error of the point over its track (SfM-image pixels)."""
+    rec.update_point_3d_errors()
+    return {int(pid): float(p.error) for pid, p in rec.points3D.items()}
+
+
+def resolve_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0):
+    """``rec``, or its bundle-adjusted depth-reversed twin where that fits the matches better, and a record.
+
+    ``cauchy_px``: the Cauchy scale of the twin's bundle adjustments (SfM-image pixels; None for
+    squared loss), as the kept model's last one. The record (``pixel_scale``: SfM-image pixels per
+    input pixel) holds both models' median errors in input pixels over the points both hold, the
+    share of those points the twin fits better, their count and whether the twin was taken:
+    ``{"median_error_px", "twin_median_error_px", "twin_better_share", "points", "reversed"}``.
+    """
+    if rec.num_points3D() == 0 or rec.num_reg_images() < 2:
+        return rec, {}
+    twin = reversed_twin(rec)
+    for _ in range(TWIN_ADJUSTMENTS):
+        bundle_adjust(twin, cauchy_px)
+    _drop_points_behind(twin)  # adjustment can push a weakly seen point through a camera
+    kept, other = point_errors(rec), point_errors(twin)
+    common = sorted(kept.keys() & other.keys())
+    if not common:
+        return rec, {}
+    a = float(np.median([kept[i] for i in common]))
+    b = float(np.median([other[i] for i in common]))
+    better = int(sum(other[i] < kept[i] for i in common))
+    reversed_ = bool(binomtest(better, len(common), 0.5, alternative="greater").pvalue < TWIN_SIGNIFICANCE)
+    share = better / len(common)
+    record = {"median_error_px": a / pixel_scale, "twin_median_error_px": b / pixel_scale, "twin_better_share": share,
+              "points": len(common), "reversed": reversed_}
+    return (twin if reversed_ else rec), record
