@@ -410,7 +410,7 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
     grows along the video (gnome-house's sofa). Under full perspective the twin fits worse, so
     among the restarts the one registering the most frames with the lowest mean reprojection
     error wins (on that sofa the true model's error is below every reversed one's). The restarts
-    share their initial pair and can all settle in the twin: :mod:`osn.preprocess.twin` then
+    can all settle in the twin: :mod:`osn.preprocess.twin` then
     builds it from the kept model.
 
     Each run is single-threaded with its own options and seed, and COLMAP's random generator is

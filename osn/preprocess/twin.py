@@ -4,8 +4,8 @@ A small object seen nearly in weak perspective has two reconstructions that fit 
 almost equally: the true one and its depth-reversed twin (the Necker reversal), whose relief is
 inverted and whose rotations turn the wrong way, by an error that grows along the video. The
 twin projects every point onto the object's masks, so no mask or depth check can tell them apart
-(:mod:`osn.preprocess.consistency`), and the mapper's restarts may all settle in it: they start
-from the same initial pair. Under full perspective only one of the two fits the matches exactly.
+(:mod:`osn.preprocess.consistency`), and the mapper's restarts, which differ only in their random
+seeds, may all settle in it. Under full perspective only one of the two fits the matches exactly.
 
 So the kept model's twin is built explicitly (:func:`reversed_twin`), bundle-adjusted, and taken
 in its place when it fits the matches better (:func:`resolve_twin`), the rule the restarts are
@@ -93,7 +93,8 @@ def _drop_points_behind(rec) -> None:
 
 
 def point_errors(rec) -> dict[int, float]:
-    """``point3D_id -> `` mean reprojection error of the point over its track (SfM-image pixels)."""
+    """``point3D_id -> `` mean reprojection error of the point over its track (SfM-image pixels),
+    recomputed from the model's poses (``rec``'s stored errors are updated)."""
     rec.update_point_3d_errors()
     return {int(pid): float(p.error) for pid, p in rec.points3D.items()}
 
@@ -107,13 +108,16 @@ def resolve_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0):
     share of those points the twin fits better, their count and whether the twin was taken:
     ``{"median_error_px", "twin_median_error_px", "twin_better_share", "points", "reversed"}``.
     """
+    import pycolmap
+
     if rec.num_points3D() == 0 or rec.num_reg_images() < 2:
         return rec, {}
     twin = reversed_twin(rec)
     for _ in range(TWIN_ADJUSTMENTS):
         bundle_adjust(twin, cauchy_px)
     _drop_points_behind(twin)  # adjustment can push a weakly seen point through a camera
-    kept, other = point_errors(rec), point_errors(twin)
+    # On a copy: recomputing the errors would change what the kept model reports downstream.
+    kept, other = point_errors(pycolmap.Reconstruction(rec)), point_errors(twin)
     common = sorted(kept.keys() & other.keys())
     if not common:
         return rec, {}

@@ -528,6 +528,15 @@ def test_a_depth_reversed_model_is_turned_back(sfm_scene, tmp_path):
         assert worst_rotation_error(models[oid], oid) < 5.0
         kept, record = resolve_twin(models[oid], cauchy)
         assert kept is models[oid] and not record["reversed"]
+    # The model given is left as it was, its stored point errors too (they set the reprojection
+    # error the report gives and the consistency check's mask tolerance): made stale here.
+    stale = pycolmap.Reconstruction(models[2])
+    im = next(im for im in stale.images.values() if im.has_pose)
+    M = np.asarray(im.cam_from_world().matrix())
+    stale.frames[im.frame_id].set_cam_from_world(im.camera_id, pycolmap.Rigid3d(pycolmap.Rotation3d(M[:, :3]), M[:, 3] + 0.05))
+    error = stale.compute_mean_reprojection_error()
+    resolve_twin(stale, cauchy)
+    assert stale.compute_mean_reprojection_error() == error
     wrong = reversed_twin(models[1])
     for _ in range(TWIN_ADJUSTMENTS):
         bundle_adjust(wrong, cauchy)
