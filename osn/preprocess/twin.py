@@ -82,6 +82,20 @@ def _triangulate(track: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | Non
     return X
 
 
+def filter_points(rec) -> None:
+    """Delete what the incremental mapper deletes after each of its bundle adjustments: observations
+    behind their camera, then points above its reprojection error or below its triangulation
+    angle (COLMAP's defaults, which the pipeline keeps). A twin that is kept is filtered so:
+    adjustment can push a weakly seen point of it out towards infinity, where its depth would set
+    the object's far plane."""
+    import pycolmap
+
+    opts = pycolmap.IncrementalMapperOptions()
+    manager = pycolmap.ObservationManager(rec)
+    manager.filter_observations_with_negative_depth()
+    manager.filter_all_points3D(opts.filter_max_reproj_error, opts.filter_min_tri_angle)
+
+
 def _drop_points_behind(rec) -> None:
     """Delete the 3D points of ``rec`` that lie behind a camera observing them."""
     cam_from_world = {i: np.asarray(im.cam_from_world().matrix()) for i, im in rec.images.items() if im.has_pose}
@@ -103,7 +117,8 @@ def resolve_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0):
     """``rec``, or its bundle-adjusted depth-reversed twin where that fits the matches better, and a record.
 
     ``cauchy_px``: the Cauchy scale of the twin's bundle adjustments (SfM-image pixels; None for
-    squared loss), as the kept model's last one. The record (``pixel_scale``: SfM-image pixels per
+    squared loss), as the kept model's last one. A twin taken is filtered as the mapper filters its
+    models (:func:`filter_points`); a model kept is returned untouched. The record (``pixel_scale``: SfM-image pixels per
     input pixel) holds both models' median errors in input pixels over the points both hold, the
     share of those points the twin fits better, their count and whether the twin was taken:
     ``{"median_error_px", "twin_median_error_px", "twin_better_share", "points", "reversed"}``.
@@ -116,7 +131,7 @@ def resolve_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0):
     for _ in range(TWIN_ADJUSTMENTS):
         bundle_adjust(twin, cauchy_px)
     _drop_points_behind(twin)  # adjustment can push a weakly seen point through a camera
-    # On a copy: recomputing the errors would change what the kept model reports downstream.
+    # On a copy: recomputing the errors would change what a model kept reports and is checked by.
     kept, other = point_errors(pycolmap.Reconstruction(rec)), point_errors(twin)
     common = sorted(kept.keys() & other.keys())
     if not common:
@@ -128,4 +143,7 @@ def resolve_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0):
     share = better / len(common)
     record = {"median_error_px": a / pixel_scale, "twin_median_error_px": b / pixel_scale, "twin_better_share": share,
               "points": len(common), "reversed": reversed_}
-    return (twin if reversed_ else rec), record
+    if not reversed_:
+        return rec, record
+    filter_points(twin)
+    return twin, record
