@@ -4,7 +4,7 @@ For every object, SIFT features are extracted only inside its mask, matched (exh
 short videos, sequentially for long ones) and reconstructed by incremental mapping with the known,
 shared pinhole camera (no intrinsics refinement); frames posed against their own matches are
 repaired (:mod:`osn.preprocess.repair`), and the model is compared with its depth-reversed twin
-(:mod:`osn.preprocess.twin`). Each object's reconstruction has its own frame and unit;
+(:mod:`osn.preprocess.twin`, reported). Each object's reconstruction has its own frame and unit;
 :mod:`osn.preprocess.video` turns a whole video's reconstructions into per-object inputs.
 
 No GUI, every random seed fixed, single-threaded where threads change results.
@@ -27,7 +27,7 @@ from scenecore.config import choice, flag, integer, number, validate
 from osn.preprocess.inputs import BOX_PADDING, NORMALISATION_RULES, SCENE_FAR_FACTOR, SCENE_NEAR_FACTOR, InputsError
 from osn.preprocess.repair import bundle_adjust, repair_registrations
 from osn.preprocess.sift_frames import GREY_MODES, crop_box, write_colmap_images
-from osn.preprocess.twin import resolve_twin
+from osn.preprocess.twin import compare_with_twin
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +226,7 @@ class ObjectSfM:
     restarts: list[dict] = field(default_factory=list)
     #: Frames whose pose contradicted their verified matches, and what was done (osn.preprocess.repair).
     repaired_frames: list[dict] = field(default_factory=list)
-    #: The kept model against its depth-reversed twin (:func:`osn.preprocess.twin.resolve_twin`).
+    #: The kept model against its depth-reversed twin (:func:`osn.preprocess.twin.compare_with_twin`).
     twin: dict = field(default_factory=dict)
 
 
@@ -317,10 +317,11 @@ def _reconstruct_in(
     cauchy = cfg.final_cauchy_px * u if cfg.final_cauchy_px > 0 else None
     if cauchy is not None:
         bundle_adjust(rec, cauchy)
-    rec, twin = resolve_twin(rec, cauchy, pixel_scale=u)
-    if twin.get("reversed"):
-        log.warning("%s: its depth-reversed twin fits its matches better (median error %.3f px, the model SfM "
-                    "kept %.3f px): the twin is kept instead", label, twin["twin_median_error_px"], twin["median_error_px"])
+    twin = compare_with_twin(rec, cauchy, pixel_scale=u)
+    if twin.get("fits_better"):
+        log.warning("%s: its depth-reversed twin fits its matches better (median error %.3f px, SfM's model %.3f px): "
+                    "SfM's model is likely depth-reversed; trained as SfM found it", label,
+                    twin["twin_median_error_px"], twin["median_error_px"])
     if keep_model:
         (work / "model").mkdir()
         rec.write(str(work / "model"))
@@ -410,8 +411,8 @@ def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessCon
     grows along the video (gnome-house's sofa). Under full perspective the twin fits worse, so
     among the restarts the one registering the most frames with the lowest mean reprojection
     error wins (on that sofa the true model's error is below every reversed one's). The restarts
-    can all settle in the twin: :mod:`osn.preprocess.twin` then
-    builds it from the kept model.
+    can all settle in the twin: :mod:`osn.preprocess.twin` then builds it from the kept model
+    and reports whether it fits better.
 
     Each run is single-threaded with its own options and seed, and COLMAP's random generator is
     per thread, so runs side by side give the models they give one after the other (the demo's

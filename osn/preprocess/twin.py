@@ -7,14 +7,17 @@ twin projects every point onto the object's masks, so no mask or depth check can
 (:mod:`osn.preprocess.consistency`), and the mapper's restarts, which differ only in their random
 seeds, may all settle in it. Under full perspective only one of the two fits the matches exactly.
 
-So the kept model's twin is built explicitly (:func:`reversed_twin`), bundle-adjusted, and taken
-in its place when it fits the matches better (:func:`resolve_twin`), the rule the restarts are
-chosen by, compared point by point over the 3D points both models hold: the twin is taken when
-its reprojection error is lower at significantly more than half of them (a one-sided sign test at
-:data:`TWIN_SIGNIFICANCE`). On a model of few points seen in few pixels the two fits differ by
-noise, about half the points either way, and swapping would trade one poorly constrained model for
-another. A model that fills the frame (the anchor) has a twin far worse than itself, and the test
-keeps it.
+So the kept model's twin is built explicitly (:func:`reversed_twin`), bundle-adjusted and compared
+point by point over the 3D points both models hold (:func:`compare_with_twin`): the twin *fits
+better* when its reprojection error is lower at significantly more than half of them (a one-sided
+sign test at :data:`TWIN_SIGNIFICANCE`). On a model of few points seen in few pixels the two fits
+differ by noise, about half the points either way. A model that fills the frame (the anchor) has a
+twin far worse than itself.
+
+A twin that fits better is reported, not trained: on the development scenes where it applies it
+is nearer the truth than SfM's model, yet the valid sets trained from it came out worse
+(docs/preprocess.md, step 8). So it says which models to distrust, like the consistency check's
+orientation kinks.
 """
 
 from __future__ import annotations
@@ -82,20 +85,6 @@ def _triangulate(track: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | Non
     return X
 
 
-def filter_points(rec) -> None:
-    """Delete what the incremental mapper deletes after each of its bundle adjustments: observations
-    behind their camera, then points above its reprojection error or below its triangulation
-    angle (COLMAP's defaults, which the pipeline keeps). A twin that is kept is filtered so:
-    adjustment can push a weakly seen point of it out towards infinity, where its depth would set
-    the object's far plane."""
-    import pycolmap
-
-    opts = pycolmap.IncrementalMapperOptions()
-    manager = pycolmap.ObservationManager(rec)
-    manager.filter_observations_with_negative_depth()
-    manager.filter_all_points3D(opts.filter_max_reproj_error, opts.filter_min_tri_angle)
-
-
 def _drop_points_behind(rec) -> None:
     """Delete the 3D points of ``rec`` that lie behind a camera observing them."""
     cam_from_world = {i: np.asarray(im.cam_from_world().matrix()) for i, im in rec.images.items() if im.has_pose}
@@ -113,37 +102,34 @@ def point_errors(rec) -> dict[int, float]:
     return {int(pid): float(p.error) for pid, p in rec.points3D.items()}
 
 
-def resolve_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0):
-    """``rec``, or its bundle-adjusted depth-reversed twin where that fits the matches better, and a record.
+def compare_with_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0) -> dict:
+    """How ``rec`` fits its matches against its bundle-adjusted depth-reversed twin; ``rec`` is
+    left untouched (its stored point errors too: they set the reprojection error it reports).
 
     ``cauchy_px``: the Cauchy scale of the twin's bundle adjustments (SfM-image pixels; None for
-    squared loss), as the kept model's last one. A twin taken is filtered as the mapper filters its
-    models (:func:`filter_points`); a model kept is returned untouched. The record (``pixel_scale``: SfM-image pixels per
-    input pixel) holds both models' median errors in input pixels over the points both hold, the
-    share of those points the twin fits better, their count and whether the twin was taken:
-    ``{"median_error_px", "twin_median_error_px", "twin_better_share", "points", "reversed"}``.
+    squared loss), as the kept model's last one. Returns (``pixel_scale``: SfM-image pixels per
+    input pixel) both models' median errors in input pixels over the points both hold, the share
+    of those points the twin fits better, their count and the sign test's verdict:
+    ``{"median_error_px", "twin_median_error_px", "twin_better_share", "points", "fits_better"}``;
+    empty when the model has no points or fewer than two frames.
     """
     import pycolmap
 
     if rec.num_points3D() == 0 or rec.num_reg_images() < 2:
-        return rec, {}
+        return {}
     twin = reversed_twin(rec)
     for _ in range(TWIN_ADJUSTMENTS):
         bundle_adjust(twin, cauchy_px)
     _drop_points_behind(twin)  # adjustment can push a weakly seen point through a camera
-    # On a copy: recomputing the errors would change what a model kept reports and is checked by.
     kept, other = point_errors(pycolmap.Reconstruction(rec)), point_errors(twin)
     common = sorted(kept.keys() & other.keys())
     if not common:
-        return rec, {}
-    a = float(np.median([kept[i] for i in common]))
-    b = float(np.median([other[i] for i in common]))
+        return {}
     better = int(sum(other[i] < kept[i] for i in common))
-    reversed_ = bool(binomtest(better, len(common), 0.5, alternative="greater").pvalue < TWIN_SIGNIFICANCE)
-    share = better / len(common)
-    record = {"median_error_px": a / pixel_scale, "twin_median_error_px": b / pixel_scale, "twin_better_share": share,
-              "points": len(common), "reversed": reversed_}
-    if not reversed_:
-        return rec, record
-    filter_points(twin)
-    return twin, record
+    return {
+        "median_error_px": float(np.median([kept[i] for i in common])) / pixel_scale,
+        "twin_median_error_px": float(np.median([other[i] for i in common])) / pixel_scale,
+        "twin_better_share": better / len(common),
+        "points": len(common),
+        "fits_better": bool(binomtest(better, len(common), 0.5, alternative="greater").pvalue < TWIN_SIGNIFICANCE),
+    }

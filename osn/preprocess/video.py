@@ -296,9 +296,9 @@ def report_lines(objects: list[dict]) -> list[str]:
         for f in r.get("repaired_frames", []):
             lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "
                          f"matches fit SfM's pose, {100 * f['consistency_after']:.1f}% after)")
-        if r.get("twin", {}).get("reversed"):
-            lines.append(f"    depth-reversed twin taken: median reprojection error {r['twin']['twin_median_error_px']:.3f} px, "
-                         f"SfM's model {r['twin']['median_error_px']:.3f} px")
+        if r.get("twin", {}).get("fits_better"):
+            lines.append(f"    likely depth-reversed: its twin fits {100 * r['twin']['twin_better_share']:.0f}% of its points better "
+                         f"(median {r['twin']['twin_median_error_px']:.3f} px, SfM's model {r['twin']['median_error_px']:.3f} px)")
         if r.get("consistency", {}).get("message"):
             lines.append(f"    {r['consistency']['action']}: {r['consistency']['message']}")
     return lines

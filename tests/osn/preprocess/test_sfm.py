@@ -488,17 +488,18 @@ def test_final_robust_bundle_adjustment_lowers_rotation_errors(sfm_scene):
     assert all(robust[k] < plain[k] for k in plain), means
 
 
-def test_a_depth_reversed_model_is_turned_back(sfm_scene, tmp_path):
+def test_a_depth_reversed_model_is_flagged_and_its_twin_is_the_truth(sfm_scene, tmp_path):
     """A model settled in its depth-reversed twin (what SfM kept of a small L-shaped mover on a
     development scene: every point on the masks, poses no similarity maps onto the truth) is
-    replaced by its own twin, which fits the matches better and is the true model; a true model
-    is kept. The twin is built here by reversing a correct model and bundle-adjusting the result."""
+    flagged: its own twin fits the matches better, and that twin is the true model. A true model
+    is not flagged, and the model compared is left as it was. The reversed model is built here by
+    reversing a correct one and bundle-adjusting the result."""
     import pycolmap
 
     from scenecore import dataset as D
     from scenecore.cameras import fit_pose_similarity, invert_pose, rotation_angle_deg
     from osn.preprocess.repair import bundle_adjust
-    from osn.preprocess.twin import TWIN_ADJUSTMENTS, resolve_twin, reversed_twin
+    from osn.preprocess.twin import TWIN_ADJUSTMENTS, compare_with_twin, reversed_twin
 
     scene = D.load_scene(sfm_scene)
     orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
@@ -523,11 +524,10 @@ def test_a_depth_reversed_model_is_turned_back(sfm_scene, tmp_path):
     models = {}
     for oid in (1, 2):
         sfm = reconstruct_object(orc.images, orc.masks, oid, orc.K, cfg, "o", work_dir=tmp_path / str(oid))
-        assert sfm.twin["reversed"] is False and sfm.twin["twin_better_share"] < 0.5, sfm.twin
+        assert sfm.twin["fits_better"] is False and sfm.twin["twin_better_share"] < 0.5, sfm.twin
         models[oid] = pycolmap.Reconstruction(str(tmp_path / str(oid) / "model"))
         assert worst_rotation_error(models[oid], oid) < 5.0
-        kept, record = resolve_twin(models[oid], cauchy)
-        assert kept is models[oid] and not record["reversed"]
+        assert compare_with_twin(models[oid], cauchy)["fits_better"] is False
     # The model given is left as it was, its stored point errors too (they set the reprojection
     # error the report gives and the consistency check's mask tolerance): made stale here.
     stale = pycolmap.Reconstruction(models[2])
@@ -535,16 +535,21 @@ def test_a_depth_reversed_model_is_turned_back(sfm_scene, tmp_path):
     M = np.asarray(im.cam_from_world().matrix())
     stale.frames[im.frame_id].set_cam_from_world(im.camera_id, pycolmap.Rigid3d(pycolmap.Rotation3d(M[:, :3]), M[:, 3] + 0.05))
     error = stale.compute_mean_reprojection_error()
-    resolve_twin(stale, cauchy)
+    compare_with_twin(stale, cauchy)
     assert stale.compute_mean_reprojection_error() == error
-    wrong = reversed_twin(models[1])
-    for _ in range(TWIN_ADJUSTMENTS):
-        bundle_adjust(wrong, cauchy)
+
+    def adjusted_twin(rec):
+        twin = reversed_twin(rec)
+        for _ in range(TWIN_ADJUSTMENTS):
+            bundle_adjust(twin, cauchy)
+        return twin
+
+    wrong = adjusted_twin(models[1])
     assert worst_rotation_error(wrong, 1) > 20.0  # a twin that fits its masks, far from the truth
-    back, record = resolve_twin(wrong, cauchy)
-    assert record["reversed"] and record["twin_better_share"] > 0.6, record
+    record = compare_with_twin(wrong, cauchy)
+    assert record["fits_better"] and record["twin_better_share"] > 0.6, record
     assert record["twin_median_error_px"] < record["median_error_px"]
-    assert worst_rotation_error(back, 1) < 5.0
+    assert worst_rotation_error(adjusted_twin(wrong), 1) < 5.0
 
 
 def test_crop_box_holds_the_object_and_the_principal_point():
