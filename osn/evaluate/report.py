@@ -57,16 +57,19 @@ def _inputs_line(run_dir: Path) -> str:
 
 def _consistency_lines(run_dir: Path) -> list[str]:
     """A paragraph on the SfM reconstructions the preprocessing check found inconsistent, and what
-    was done with each (``meta.consistency`` of the run's ``inputs.json``; none: no lines)."""
+    was done with each, and on those likely depth-reversed (``meta.consistency`` and
+    ``meta.likely_reversed`` of the run's ``inputs.json``; none: no lines)."""
     try:
-        checks = read_json(Path(run_dir) / "inputs" / "inputs.json").get("meta", {}).get("consistency") or {}
+        meta = read_json(Path(run_dir) / "inputs" / "inputs.json").get("meta", {})
+        checks, reversed_ = meta.get("consistency") or {}, meta.get("likely_reversed") or {}
     except (OSError, ValueError, AttributeError):
         return []
-    flagged = [c for c in checks.values() if isinstance(c, dict) and c.get("message")]
+    flagged = [f"- {c.get('action', '?')}: {c['message']}" for c in checks.values() if isinstance(c, dict) and c.get("message")]
+    flagged += [f"- likely depth-reversed: {m}" for m in reversed_.values() if isinstance(m, str)]
     if not flagged:
         return []
     return ["SfM reconstructions that contradict the video (checked without ground truth, docs/preprocess.md):",
-            "", *[f"- {c.get('action', '?')}: {c['message']}" for c in flagged], ""]
+            "", *flagged, ""]
 
 
 def _environment_lines(run_dir: Path) -> list[str]:

@@ -318,10 +318,6 @@ def _reconstruct_in(
     if cauchy is not None:
         bundle_adjust(rec, cauchy)
     twin = compare_with_twin(rec, cauchy, pixel_scale=u)
-    if twin.get("fits_better"):
-        log.warning("%s: its depth-reversed twin fits its matches better (median error %.3f px, SfM's model %.3f px): "
-                    "SfM's model is likely depth-reversed; trained as SfM found it", label,
-                    twin["twin_median_error_px"], twin["median_error_px"])
     if keep_model:
         (work / "model").mkdir()
         rec.write(str(work / "model"))

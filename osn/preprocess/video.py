@@ -92,6 +92,8 @@ def _preprocess_video(
             report.objects.append({"id": oid, "name": name, "error": str(sfm)})
             continue
         verdict = verdicts[oid]
+        if sfm.twin.get("fits_better"):
+            log.warning("%s", reversed_message(oid, name, sfm.twin))
         if verdict.drop:
             log.warning("%s", verdict.message)
             report.dropped.append(oid)
@@ -120,9 +122,18 @@ def _preprocess_video(
         objects=objects, anchor=anchor, scene_near=scene_near, scene_far=scene_far, source="colmap",
         meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped,
               "untrusted_depths": [k for k, v in sorted(verdicts.items()) if not v.use_depths and not v.drop],
-              "consistency": {str(k): consistency_summary(v) for k, v in sorted(verdicts.items())}},
+              "consistency": {str(k): consistency_summary(v) for k, v in sorted(verdicts.items())},
+              "likely_reversed": {str(o.id): reversed_message(o.id, o.name, results[o.id].twin) for o in objects
+                                  if results[o.id].twin.get("fits_better")}},
     )
     return inputs, report
+
+
+def reversed_message(oid: int, name: str, twin: dict) -> str:
+    """One line on a model whose depth-reversed twin fits better (:func:`osn.preprocess.twin.compare_with_twin`)."""
+    return (f"object {oid} ({name}): its depth-reversed twin fits {100 * twin['twin_better_share']:.0f}% of its "
+            f"{twin['points']} points better (median {twin['twin_median_error_px']:.3f} px against "
+            f"{twin['median_error_px']:.3f} px): likely depth-reversed, trained as SfM found it")
 
 
 def check_reconstructions(
@@ -297,8 +308,7 @@ def report_lines(objects: list[dict]) -> list[str]:
             lines.append(f"    frame {f['frame']}: {f['action']} ({100 * f['consistency']:.1f}% of its verified "
                          f"matches fit SfM's pose, {100 * f['consistency_after']:.1f}% after)")
         if r.get("twin", {}).get("fits_better"):
-            lines.append(f"    likely depth-reversed: its twin fits {100 * r['twin']['twin_better_share']:.0f}% of its points better "
-                         f"(median {r['twin']['twin_median_error_px']:.3f} px, SfM's model {r['twin']['median_error_px']:.3f} px)")
+            lines.append(f"    {reversed_message(r['id'], r['name'], r['twin'])}")
         if r.get("consistency", {}).get("message"):
             lines.append(f"    {r['consistency']['action']}: {r['consistency']['message']}")
     return lines

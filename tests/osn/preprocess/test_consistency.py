@@ -121,6 +121,23 @@ def test_scrambled_depths_train_without_depths(scene, monkeypatch, tmp_path):
     assert len([line for line in lines if line.startswith("- no_depth: object 2 (block)")]) == 1, lines
 
 
+def test_a_likely_reversed_model_is_named_in_the_warnings_and_the_runs_report(scene, monkeypatch, caplog, tmp_path):
+    """A model whose depth-reversed twin fits better (``twin`` from SfM, test_sfm.py builds one) is
+    trained as found, and named: a warning, the report's lines, the inputs' meta, the run's report."""
+    named = copy.deepcopy(scene["results"])
+    named[BALL].twin = {**named[BALL].twin, "fits_better": True, "twin_better_share": 0.8}
+    with caplog.at_level(logging.WARNING, logger="osn.preprocess.video"):
+        inputs, report = _preprocess(scene, named, monkeypatch)
+    assert np.array_equal(inputs.object(BALL).cam_to_obj, _preprocess(scene, scene["results"], monkeypatch)[0].object(BALL).cam_to_obj)
+    assert list(inputs.meta["likely_reversed"]) == [str(BALL)]
+    assert any("object 1 (ball)" in r.getMessage() and "likely depth-reversed" in r.getMessage() for r in caplog.records)
+    assert any("object 1 (ball)" in line and "80%" in line for line in video.report_lines(report.objects))
+    run = tmp_path / "run"
+    save_inputs(run / "inputs", inputs)
+    assert [line for line in _consistency_lines(run) if "likely depth-reversed" in line][0].startswith("- likely depth-reversed: object 1 (ball)")
+    assert scene["results"][ROOM].twin["fits_better"] is False  # no false alarm on the real models
+
+
 def test_a_mirrored_trajectory_drops_the_object(scene, monkeypatch, caplog):
     broken = copy.deepcopy(scene["results"])
     flip = np.diag([1.0, 1.0, -1.0, 1.0])  # the ball's cameras reflected through its first frame's image plane
