@@ -64,7 +64,8 @@ def _consistency_lines(run_dir: Path) -> list[str]:
         checks, reversed_ = meta.get("consistency") or {}, meta.get("likely_reversed") or {}
     except (OSError, ValueError, AttributeError):
         return []
-    flagged = [f"- {c.get('action', '?')}: {c['message']}" for c in checks.values() if isinstance(c, dict) and c.get("message")]
+    flagged = [f"- {c.get('action', '?')}: {c['message']}" for c in checks.values()
+               if isinstance(c, dict) and c.get("message")]
     flagged += [f"- likely depth-reversed: {m}" for m in reversed_.values() if isinstance(m, str)]
     if not flagged:
         return []

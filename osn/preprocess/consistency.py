@@ -17,8 +17,9 @@ Signals, per object:
   translations that move the object across its silhouette (a few degrees on an object a tenth of
   the frame wide), and depths so wrong that parallax moves them off the silhouette. *Cannot
   detect* errors that keep the silhouette: a depth-reversed twin (it reproduces the image
-  positions; SfM compares the kept model with it, :mod:`osn.preprocess.twin`), a turn about the line of sight to a round object, scale; nor anything about the
-  anchor (its mask is the whole frame but the objects, which may hide it).
+  positions; SfM compares the kept model with it, :mod:`osn.preprocess.twin`), a turn about the
+  line of sight to a round object, scale; nor anything about the anchor (its mask is the whole
+  frame but the objects, which may hide it).
 * **Depth agreement** (:func:`depth_disagreement`, :func:`consistent_core`): a point of frame i
   projected into frame j lands next to the depths SfM observed there; where one lies within the
   mask tolerance, the relative difference of the two depths (median per frame pair). In a

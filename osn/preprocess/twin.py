@@ -16,8 +16,8 @@ twin far worse than itself.
 
 A twin that fits better is reported, not trained: on the development scenes where it applies it
 is nearer the truth than SfM's model, yet the valid sets trained from it came out no better, on
-one scene empty (docs/preprocess.md, step 8). So it says which models to distrust, like the consistency check's
-orientation kinks.
+one scene empty (docs/preprocess.md, step 8). So it says which models to distrust, like the
+consistency check's orientation kinks.
 """
 
 from __future__ import annotations
