@@ -67,22 +67,20 @@ def reversed_twin(rec):
             twin.delete_point3D(pid)
         else:
             twin.point3D(pid).xyz = X
+    _drop_points_behind(twin)
     return twin
 
 
 def _triangulate(track: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
     """Linear (DLT) triangulation of one track of ``(P (3, 4), xy (2,))``; None when the point is
-    at infinity or behind any of the cameras."""
+    at infinity."""
     rows = []
     for P, (x, y) in track:
         rows += [x * P[2] - P[0], y * P[2] - P[1]]
     Xh = np.linalg.svd(np.asarray(rows))[2][-1]
     if abs(Xh[3]) < 1e-12 * np.abs(Xh[:3]).max():
         return None
-    X = Xh[:3] / Xh[3]
-    if any(P[2, :3] @ X + P[2, 3] <= 0 for P, _ in track):
-        return None
-    return X
+    return Xh[:3] / Xh[3]
 
 
 def _drop_points_behind(rec) -> None:

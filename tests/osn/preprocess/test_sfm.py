@@ -6,6 +6,7 @@ import dataclasses
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -497,7 +498,7 @@ def test_a_depth_reversed_model_is_flagged_and_its_twin_is_the_truth(sfm_scene, 
     import pycolmap
 
     from scenecore import dataset as D
-    from scenecore.cameras import fit_pose_similarity, invert_pose, rotation_angle_deg
+    from scenecore.cameras import invert_pose
     from osn.preprocess.repair import bundle_adjust
     from osn.preprocess.twin import TWIN_ADJUSTMENTS, compare_with_twin, reversed_twin
 
@@ -507,19 +508,16 @@ def test_a_depth_reversed_model_is_flagged_and_its_twin_is_the_truth(sfm_scene, 
     cauchy = cfg.final_cauchy_px * cfg.upscale
 
     def worst_rotation_error(rec, oid: int) -> float:
-        """Degrees, after the similarity that best maps the model's cameras onto the truth (inf
-        when none does: cameras whose centres run the wrong way)."""
-        frames, truth = alignment.true_camera_poses(scene, orc.masks, oid)
-        slot = {int(t): i for i, t in enumerate(frames)}
+        """Degrees, after the similarity that best maps the model's cameras onto the truth (the
+        report's alignment; inf when none does: cameras whose centres run the wrong way)."""
         ims = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
-        ours = np.stack([invert_pose(np.r_[np.asarray(im.cam_from_world().matrix()), [[0, 0, 0, 1]]]) for im in ims])
-        gt = truth[[slot[int(Path(im.name).stem)] for im in ims]]
+        model = SimpleNamespace(frames=np.array([int(Path(im.name).stem) for im in ims]), unit_to_world=None,
+                                cam_to_obj=np.stack([invert_pose(np.r_[im.cam_from_world().matrix(), [[0, 0, 0, 1]]])
+                                                     for im in ims]))
         try:
-            S = fit_pose_similarity(ours, gt)
+            return alignment.pose_accuracy(model, *alignment.true_camera_poses(scene, orc.masks, oid))["rotation_error_deg_max"]
         except ValueError:
             return float("inf")
-        R = S[:3, :3] / np.cbrt(np.linalg.det(S[:3, :3]))
-        return max(rotation_angle_deg(R @ a[:3, :3], b[:3, :3]) for a, b in zip(ours, gt))
 
     models = {}
     for oid in (1, 2):
