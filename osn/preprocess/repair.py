@@ -157,6 +157,18 @@ def bundle_adjust(rec, cauchy_px: float | None = None) -> None:
     pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
 
 
+def drop_points_behind(rec) -> int:
+    """Delete the 3D points of ``rec`` that lie behind a camera observing them (an adjustment can
+    push a weakly seen point through a camera); returns how many went."""
+    cam_from_world = {i: np.asarray(im.cam_from_world().matrix()) for i, im in rec.images.items() if im.has_pose}
+    behind = [pid for pid in rec.point3D_ids()
+              if any(cam_from_world[el.image_id][2, :3] @ rec.point3D(pid).xyz + cam_from_world[el.image_id][2, 3] <= 0
+                     for el in rec.point3D(pid).track.elements)]
+    for pid in behind:
+        rec.delete_point3D(pid)
+    return len(behind)
+
+
 def repair_registrations(
     rec, db_path: Path, K: np.ndarray, threshold_px: float, min_consistency: float, min_inliers: int, seed: int,
 ) -> list[dict]:

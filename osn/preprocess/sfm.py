@@ -25,7 +25,7 @@ import numpy as np
 from scenecore.cameras import invert_pose
 from scenecore.config import choice, flag, integer, number, validate
 from osn.preprocess.inputs import BOX_PADDING, NORMALISATION_RULES, SCENE_FAR_FACTOR, SCENE_NEAR_FACTOR, InputsError
-from osn.preprocess.repair import bundle_adjust, repair_registrations
+from osn.preprocess.repair import bundle_adjust, drop_points_behind, repair_registrations
 from osn.preprocess.sift_frames import GREY_MODES, crop_box, write_colmap_images
 from osn.preprocess.twin import compare_with_twin
 
@@ -220,7 +220,7 @@ class ObjectSfM:
     num_features: int
     num_points: int
     candidate_frames: int
-    #: Mean reprojection error of the kept reconstruction, in input-frame pixels.
+    #: Mean reprojection error of the final model's points that give sparse depths (input-frame pixels).
     reprojection_error_px: float = float("nan")
     #: Every model of every mapper restart: seed, frames registered, mean reprojection error (px).
     restarts: list[dict] = field(default_factory=list)
@@ -317,12 +317,16 @@ def _reconstruct_in(
     cauchy = cfg.final_cauchy_px * u if cfg.final_cauchy_px > 0 else None
     if cauchy is not None:
         bundle_adjust(rec, cauchy)
+    drop_points_behind(rec)
+    # COLMAP stores each point's error when it last triangulated or filtered it; an adjustment
+    # moves the model without updating them. The kept points, their weights and the reported
+    # error (the consistency check's tolerance) must be the final model's.
+    rec.update_point_3d_errors()
     twin = compare_with_twin(rec, cauchy, pixel_scale=u)
     if keep_model:
         (work / "model").mkdir()
         rec.write(str(work / "model"))
     sfm = _collect(rec, label, frames, num_features, cfg, W, H, (x0, y0))
-    sfm.reprojection_error_px = rec.compute_mean_reprojection_error() / cfg.upscale
     sfm.restarts = tried
     sfm.repaired_frames = repaired
     sfm.twin = twin
@@ -456,6 +460,7 @@ def _collect(
             f"from {num_features} features; needs >= {cfg.min_frames} frames and >= {cfg.min_points} points; {ADVICE}"
         )
     out_frames, poses, pix_l, dep_l, w_l = [], [], [], [], []
+    kept_errors: dict[int, float] = {}
     for im in reg:
         cfw = np.eye(4)
         cfw[:3, :] = im.cam_from_world().matrix()
@@ -472,6 +477,7 @@ def _collect(
             xy.append(p2.xy)
             z.append(depth)
             err.append(pt.error)
+            kept_errors[p2.point3D_id] = pt.error
         if not z:
             continue
         out_frames.append(int(Path(im.name).stem))
@@ -491,4 +497,5 @@ def _collect(
         num_features=num_features,
         num_points=int(rec.num_points3D()),
         candidate_frames=len(frames),
+        reprojection_error_px=float(np.mean(list(kept_errors.values()))) / cfg.upscale if kept_errors else float("nan"),
     )

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import binomtest
 
-from osn.preprocess.repair import bundle_adjust
+from osn.preprocess.repair import bundle_adjust, drop_points_behind
 
 #: Bundle adjustments of the twin before the comparison: it starts pixels off its own optimum (the
 #: reversal is exact only under affine projection).
@@ -67,7 +67,7 @@ def reversed_twin(rec):
             twin.delete_point3D(pid)
         else:
             twin.point3D(pid).xyz = X
-    _drop_points_behind(twin)
+    drop_points_behind(twin)
     return twin
 
 
@@ -83,16 +83,6 @@ def _triangulate(track: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | Non
     return Xh[:3] / Xh[3]
 
 
-def _drop_points_behind(rec) -> None:
-    """Delete the 3D points of ``rec`` that lie behind a camera observing them."""
-    cam_from_world = {i: np.asarray(im.cam_from_world().matrix()) for i, im in rec.images.items() if im.has_pose}
-    for pid in list(rec.point3D_ids()):
-        X = rec.point3D(pid).xyz
-        if any(cam_from_world[el.image_id][2, :3] @ X + cam_from_world[el.image_id][2, 3] <= 0
-               for el in rec.point3D(pid).track.elements):
-            rec.delete_point3D(pid)
-
-
 def point_errors(rec) -> dict[int, float]:
     """``point3D_id -> `` mean reprojection error of the point over its track (SfM-image pixels),
     recomputed from the model's poses (``rec``'s stored errors are updated)."""
@@ -102,7 +92,7 @@ def point_errors(rec) -> dict[int, float]:
 
 def compare_with_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0) -> dict:
     """How ``rec`` fits its matches against its bundle-adjusted depth-reversed twin; ``rec`` is
-    left untouched (its stored point errors too: they set the reprojection error it reports).
+    left untouched (its stored point errors too).
 
     ``cauchy_px``: the Cauchy scale of the twin's bundle adjustments (SfM-image pixels; None for
     squared loss), as the kept model's last one. Returns (``pixel_scale``: SfM-image pixels per
@@ -118,7 +108,7 @@ def compare_with_twin(rec, cauchy_px: float | None, pixel_scale: float = 1.0) ->
     twin = reversed_twin(rec)
     for _ in range(TWIN_ADJUSTMENTS):
         bundle_adjust(twin, cauchy_px)
-    _drop_points_behind(twin)  # adjustment can push a weakly seen point through a camera
+    drop_points_behind(twin)  # adjustment can push a weakly seen point through a camera
     kept, other = point_errors(pycolmap.Reconstruction(rec)), point_errors(twin)
     common = sorted(kept.keys() & other.keys())
     if not common:

@@ -95,7 +95,6 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
         (kept,) = [t for t in tried if t["kept"]]
         assert kept["reprojection_error_px"] == min(t["reprojection_error_px"] for t in tried if t["registered_frames"] == most)
         assert r["registered_frames"] <= most  # frames without a usable point are dropped after
-        # the report's error is the final model's (after the robust bundle adjustment)
         assert 0 < r["reprojection_error_px"] < 2.0
     for o in [*kept_all.objects, *(o for o in inputs.objects if o.id != inputs.anchor)]:  # the unit: the median depth it is normalised from
         assert np.median(np.concatenate(o.sparse_depth)) == pytest.approx(1.0)
@@ -489,6 +488,37 @@ def test_final_robust_bundle_adjustment_lowers_rotation_errors(sfm_scene):
     assert all(robust[k] < plain[k] for k in plain), means
 
 
+def test_kept_depths_their_weights_and_the_reported_error_are_the_final_models(sfm_scene, tmp_path):
+    """COLMAP stores a point's error when it last triangulated it, and the final robust bundle
+    adjustment moves every point and pose after that: the depths kept, their weights and the
+    reprojection error reported (the consistency check's mask tolerance) must be the adjusted
+    model's, and no point it pushed behind a camera may give a depth in the frames before it."""
+    import pycolmap
+
+    orc = oracle_inputs(sfm_scene, OracleConfig(min_pixels=1, points_per_frame=1))
+    cfg = PreprocessConfig()
+    sfm = reconstruct_object(orc.images, orc.masks, 2, orc.K, cfg, "o", work_dir=tmp_path / "o")
+    rec = pycolmap.Reconstruction(str(tmp_path / "o" / "model"))  # written as _collect read it
+    stored = {pid: p.error for pid, p in rec.points3D.items()}
+    rec.update_point_3d_errors()
+    fresh = {pid: p.error for pid, p in rec.points3D.items()}
+    assert stored.keys() == fresh.keys() and len(fresh) >= cfg.min_points
+    assert all(abs(stored[i] - fresh[i]) <= 1e-9 * max(1.0, fresh[i]) for i in fresh)
+    weights, used = [], {}
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        M = np.asarray(im.cam_from_world().matrix())
+        for p2 in im.points2D:
+            if p2.has_point3D():
+                assert M[2, :3] @ rec.point3D(p2.point3D_id).xyz + M[2, 3] > 0  # in front of every camera
+                if fresh[p2.point3D_id] <= cfg.max_reprojection_error:
+                    weights.append(1.0 / (1.0 + fresh[p2.point3D_id] ** 2))
+                    used[p2.point3D_id] = fresh[p2.point3D_id]
+    np.testing.assert_allclose(np.sort(np.concatenate(sfm.sparse_weight)), np.sort(weights), rtol=1e-12)
+    assert sfm.reprojection_error_px == pytest.approx(np.mean(list(used.values())) / cfg.upscale, rel=1e-12)
+
+
 def test_a_depth_reversed_model_is_flagged_and_its_twin_is_the_truth(sfm_scene, tmp_path):
     """A model settled in its depth-reversed twin (what SfM kept of a small L-shaped mover on a
     development scene: every point on the masks, poses no similarity maps onto the truth) is
@@ -526,8 +556,7 @@ def test_a_depth_reversed_model_is_flagged_and_its_twin_is_the_truth(sfm_scene, 
         models[oid] = pycolmap.Reconstruction(str(tmp_path / str(oid) / "model"))
         assert worst_rotation_error(models[oid], oid) < 5.0
         assert compare_with_twin(models[oid], cauchy)["fits_better"] is False
-    # The model given is left as it was, its stored point errors too (they set the reprojection
-    # error the report gives and the consistency check's mask tolerance): made stale here.
+    # The model given is left as it was, its stored point errors too: made stale here.
     stale = pycolmap.Reconstruction(models[2])
     im = next(im for im in stale.images.values() if im.has_pose)
     M = np.asarray(im.cam_from_world().matrix())
