@@ -8,7 +8,7 @@ Run on a fresh clone (the figure README quotes is what a new user gets)::
 Standard library only, so that it can start ``make demo`` before the virtual environment exists.
 Writes one results JSON (:mod:`benchmarks.results_json`'s layout): the command, the commit, the
 machine, the time, the wall seconds from ``make demo`` to its table (set-up included), each
-stage's seconds, and the demo's results table with the valid set's accuracy. ``scripts/docs_tables.py``
+stage's seconds, and the demo's results table with the valid set's accuracy. ``scripts/docs_generate.py``
 renders its tables into README.
 """
 

@@ -1,6 +1,6 @@
 """The one layout of a benchmark's results JSON (``benchmarks/results/*.json``).
 
-Every figure README or docs show comes from such a file: ``scripts/docs_tables.py`` renders its
+Every figure README or docs show comes from such a file: ``scripts/docs_generate.py`` renders its
 ``tables`` into the Markdown between ``<!-- generated: FILE#TABLE -->`` and ``<!-- end generated -->``,
 with one provenance line (command, commit, machine, time) above the table, and a test fails when
 the Markdown differs from the file. Standard library only.
