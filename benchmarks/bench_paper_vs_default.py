@@ -20,9 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_heldout import _mean_std  # noqa: E402
 from benchutil import print_command  # noqa: E402
 from results_json import table, write_results  # noqa: E402
 
@@ -84,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = []
     for cfg in configs:
         rs = [r for r in recs if r["config"] == cfg.name]
-        ms = lambda k, d: f"{np.mean(k):.{d}f} ± {np.std(k):.{d}f}"  # noqa: E731
+        ms = lambda k, d: _mean_std(k, f"{{:.{d}f}}")  # noqa: E731  (sample std, as every benchmark's table)
         summary.append([cfg.name, f"{len(rs)} seeds", ms([r["train_psnr"] for r in rs], 2), ms([r["iou"] for r in rs], 3),
                         ms([r["best"] for r in rs], 2), ms([r["highest"] for r in rs], 2),
                         ms([r["best"] - r["highest"] for r in rs], 2), ms([r["train_s"] for r in rs], 0)])
