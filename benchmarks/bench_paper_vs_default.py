@@ -87,7 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         summary.append([cfg.name, f"{len(rs)} seeds", ms([r["train_psnr"] for r in rs], 2), ms([r["iou"] for r in rs], 3),
                         ms([r["best"] for r in rs], 2), ms([r["highest"] for r in rs], 2),
                         ms([r["best"] - r["highest"] for r in rs], 2), ms([r["train_s"] for r in rs], 0)])
-    tables = {"runs": table(cols, rows), "summary": table(cols, summary)}
+    short = [0, 3, 4, 5, 6, 7]  # README's: without the seed count and the training PSNR
+    tables = {"runs": table(cols, rows), "summary": table(cols, summary),
+              "summary_short": table([f"config ({len(seeds)} seeds)"] + [cols[i] for i in short[1:]],
+                                     [[r[i] for i in short] for r in summary])}
     command = "python " + " ".join(["benchmarks/bench_paper_vs_default.py", *(argv if argv is not None else sys.argv[1:])])
     write_results(a.out, "paper_vs_default", command, tables, {"runs": recs, "dataset": str(a.work / "dataset")}, cwd=REPO)
     print(f"wrote {a.out}")
