@@ -224,6 +224,7 @@ def test_out_dir_of_an_earlier_report_is_replaced(tiny_dataset: Path, pred: Path
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the swallowed exception is the case
 def test_a_signal_swallowed_where_python_ignores_exceptions_still_stops_the_command(sig: int, capsys) -> None:
     """Python ignores an exception raised in a finaliser (or a logging lock's release): a Ctrl-C or
     SIGTERM landing there must still end the command with 128 + its number, not exit 0."""
