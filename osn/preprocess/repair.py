@@ -169,6 +169,16 @@ def drop_points_behind(rec) -> int:
     return len(behind)
 
 
+def settle_points(rec) -> int:
+    """Make an adjusted ``rec`` safe to read points from: delete the points behind a camera that
+    observes them, then recompute every point's error. COLMAP stores a point's error when it last
+    triangulates or filters it, and a bundle adjustment moves the model without updating it.
+    Returns how many points went."""
+    dropped = drop_points_behind(rec)
+    rec.update_point_3d_errors()
+    return dropped
+
+
 def repair_registrations(
     rec, db_path: Path, K: np.ndarray, threshold_px: float, min_consistency: float, min_inliers: int, seed: int,
 ) -> list[dict]:

@@ -16,7 +16,6 @@ import logging
 import os
 import shutil
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +24,8 @@ import numpy as np
 from scenecore.cameras import invert_pose
 from scenecore.config import choice, flag, integer, number, validate
 from osn.preprocess.inputs import BOX_PADDING, NORMALISATION_RULES, SCENE_FAR_FACTOR, SCENE_NEAR_FACTOR, InputsError
-from osn.preprocess.repair import bundle_adjust, drop_points_behind, repair_registrations
+from osn.preprocess.mapping import best_of_restarts, extract_features, match_features
+from osn.preprocess.repair import bundle_adjust, repair_registrations, settle_points
 from osn.preprocess.sift_frames import GREY_MODES, crop_box, write_colmap_images
 from osn.preprocess.twin import compare_with_twin
 
@@ -87,7 +87,7 @@ class PreprocessConfig:
             (:func:`osn.preprocess.inputs.auto_points_per_frame`). Near, far and boxes use all.
         seed: every random seed of pycolmap (restart ``k`` of the mapper uses ``seed + k``).
         mapper_restarts: incremental mapping runs on the same matches; the best one is kept
-            (:func:`_best_of_restarts` explains why a single run is not enough).
+            (:func:`osn.preprocess.mapping.best_of_restarts` explains why a single run is not enough).
         anchor_mapper_restarts: the same for the anchor. It fills the frame, so it has no
             depth-reversed twin, and its restarts find models that agree in frames and error; yet
             the valid set trained from a single run spreads wider over training seeds, for little
@@ -302,9 +302,9 @@ def _reconstruct_in(
     names = write_colmap_images(img_dir, mask_dir, images[:, y0:y1, x0:x1], masks[:, y0:y1, x0:x1], frames, object_id,
                                 cfg.grey, cfg.mask_erosion, cfg.upscale)
     db = work / "database.db"
-    num_features = _extract_features(db, img_dir, mask_dir, names, K, cfg)
-    _match_features(db, len(frames), cfg)
-    rec, tried = _best_of_restarts(db, img_dir, out_dir, cfg, restart_workers)
+    num_features = extract_features(db, img_dir, mask_dir, names, K, cfg)
+    match_features(db, len(frames), cfg)
+    rec, tried = best_of_restarts(db, img_dir, out_dir, cfg, restart_workers)
     if rec is None:
         raise ObjectRegistrationError(
             f"{label}: SfM found no reconstruction ({num_features} features in {len(frames)} frames); {ADVICE}"
@@ -317,11 +317,7 @@ def _reconstruct_in(
     cauchy = cfg.final_cauchy_px * u if cfg.final_cauchy_px > 0 else None
     if cauchy is not None:
         bundle_adjust(rec, cauchy)
-    drop_points_behind(rec)
-    # COLMAP stores each point's error when it last triangulated or filtered it; an adjustment
-    # moves the model without updating them. The kept points, their weights and the reported
-    # error (the consistency check's tolerance) must be the final model's.
-    rec.update_point_3d_errors()
+    settle_points(rec)  # the kept depths, their weights and the reported error: the final model's
     twin = compare_with_twin(rec, cauchy, pixel_scale=u)
     if keep_model:
         (work / "model").mkdir()
@@ -331,118 +327,6 @@ def _reconstruct_in(
     sfm.repaired_frames = repaired
     sfm.twin = twin
     return sfm
-
-
-def _extract_features(db: Path, img_dir: Path, mask_dir: Path, names: list[str], K: np.ndarray, cfg: PreprocessConfig) -> int:
-    """SIFT inside the masks into the database ``db`` with the known camera; returns the keypoint count."""
-    import pycolmap
-
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "PINHOLE"
-    u = cfg.upscale  # pixel corners stay at integers, so every intrinsic scales by u
-    reader.camera_params = f"{u * K[0, 0]},{u * K[1, 1]},{u * K[0, 2]},{u * K[1, 2]}"
-    reader.mask_path = str(mask_dir)
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = 1
-    extraction.sift.max_num_features = cfg.max_features
-    extraction.sift.peak_threshold = cfg.peak_threshold
-    pycolmap.extract_features(
-        db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-        reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-    )
-    database = pycolmap.Database.open(db)
-    try:
-        return int(database.num_keypoints())
-    finally:
-        database.close()
-
-
-def _match_features(db: Path, num_frames: int, cfg: PreprocessConfig) -> None:
-    """Match and geometrically verify the features of ``db`` (sequential for long videos)."""
-    import pycolmap
-
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = 1
-    matching.guided_matching = cfg.guided_matching
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.max_error = cfg.epipolar_error * cfg.upscale  # in SIFT-image pixels
-    use_seq = cfg.matcher == "sequential" or (cfg.matcher == "auto" and num_frames > cfg.exhaustive_max_frames)
-    if use_seq:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = cfg.sequential_overlap
-        pycolmap.match_sequential(
-            db, matching_options=matching, pairing_options=pairing, verification_options=verification,
-            device=pycolmap.Device.cpu,
-        )
-    else:
-        pycolmap.match_exhaustive(
-            db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
-        )
-
-
-def _mapper_options(cfg: PreprocessConfig):
-    """``pycolmap.IncrementalPipelineOptions``: single-threaded, fixed intrinsics, small-crop thresholds."""
-    import pycolmap
-
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = 1
-    opts.mapper.num_threads = 1
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    opts.min_model_size = min(cfg.min_frames, 3)
-    # COLMAP's defaults (100 inliers, 16 degrees) are tuned for megapixel photos; a 128x128
-    # object crop has tens of matches and a short baseline.
-    opts.min_num_matches = cfg.min_matches
-    opts.mapper.init_min_num_inliers = cfg.init_min_inliers
-    opts.mapper.init_min_tri_angle = cfg.init_min_tri_angle
-    opts.mapper.abs_pose_min_num_inliers = cfg.abs_pose_min_inliers
-    return opts
-
-
-def _best_of_restarts(db: Path, img_dir: Path, out_dir: Path, cfg: PreprocessConfig, workers: int = 1
-                      ) -> tuple[object, list[dict]]:
-    """Incremental mapping from ``cfg.mapper_restarts`` seeds, ``workers`` runs at once on threads:
-    the best reconstruction (None if no restart found one) and, per model found, its seed, frames
-    and mean reprojection error.
-
-    A small object seen nearly in weak perspective has a depth-reversed twin: the mapper can
-    settle in either, and the reversed one turns its rotations the wrong way, by an error that
-    grows along the video (gnome-house's sofa). Under full perspective the twin fits worse, so
-    among the restarts the one registering the most frames with the lowest mean reprojection
-    error wins (on that sofa the true model's error is below every reversed one's). The restarts
-    can all settle in the twin: :mod:`osn.preprocess.twin` then builds it from the kept model
-    and reports whether it fits better.
-
-    Each run is single-threaded with its own options and seed, and COLMAP's random generator is
-    per thread, so runs side by side give the models they give one after the other (the demo's
-    room and gnome: equal poses, errors and point counts; ``test_mapper_restarts_on_threads_equal_one_after_another``).
-    """
-    import pycolmap
-
-    def run(k: int):
-        opts = _mapper_options(cfg)
-        opts.random_seed = opts.mapper.random_seed = cfg.seed + k
-        (out_dir / str(k)).mkdir()
-        # Side by side, each run reads its own copy: two mappers opening one database failed now
-        # and then ("No registered database factory succeeded").
-        own = db if workers <= 1 else Path(shutil.copy(db, out_dir / str(k) / "database.db"))
-        return pycolmap.incremental_mapping(own, img_dir, out_dir / str(k), options=opts)
-
-    restarts = range(max(cfg.mapper_restarts, 1))
-    with ThreadPoolExecutor(max(1, min(workers, len(restarts))), thread_name_prefix="mapper") as pool:
-        runs = list(pool.map(run, restarts))  # in seed order, so ties are broken as one after another
-    best, best_key, best_idx, tried = None, None, -1, []
-    for k, recs in zip(restarts, runs):
-        for rec in recs.values():
-            err = rec.compute_mean_reprojection_error()
-            tried.append({"seed": cfg.seed + k, "registered_frames": rec.num_reg_images(), "reprojection_error_px": err / cfg.upscale})
-            key = (rec.num_reg_images(), -err)
-            if best_key is None or key > best_key:
-                best, best_key, best_idx = rec, key, len(tried) - 1
-    for j, t in enumerate(tried):
-        t["kept"] = j == best_idx
-    return best, tried
 
 
 def _collect(

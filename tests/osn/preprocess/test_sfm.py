@@ -517,6 +517,23 @@ def test_kept_depths_their_weights_and_the_reported_error_are_the_final_models(s
                     used[p2.point3D_id] = fresh[p2.point3D_id]
     np.testing.assert_allclose(np.sort(np.concatenate(sfm.sparse_weight)), np.sort(weights), rtol=1e-12)
     assert sfm.reprojection_error_px == pytest.approx(np.mean(list(used.values())) / cfg.upscale, rel=1e-12)
+    # The step that makes it so, on a model an adjustment left with a point behind a camera and
+    # every stored error stale: that point goes (only it), the others' errors are recomputed.
+    from osn.preprocess.repair import settle_points
+
+    moved = pycolmap.Reconstruction(rec)
+    pid = next(iter(moved.point3D_ids()))
+    el = moved.point3D(pid).track.elements[0]
+    M = np.asarray(moved.images[el.image_id].cam_from_world().matrix())
+    centre = -M[:, :3].T @ M[:, 3]
+    moved.point3D(pid).xyz = centre - M[2, :3]  # one unit behind the camera, on its axis
+    im = next(im for im in moved.images.values() if im.has_pose)
+    A = np.asarray(im.cam_from_world().matrix())
+    moved.frames[im.frame_id].set_cam_from_world(im.camera_id, pycolmap.Rigid3d(pycolmap.Rotation3d(A[:, :3]), A[:, 3] + 0.05))
+    assert settle_points(moved) == 1 and pid not in set(moved.point3D_ids())
+    settled = {i: p.error for i, p in moved.points3D.items()}
+    moved.update_point_3d_errors()
+    assert settled == {i: p.error for i, p in moved.points3D.items()} != {i: fresh[i] for i in settled}
 
 
 def test_a_depth_reversed_model_is_flagged_and_its_twin_is_the_truth(sfm_scene, tmp_path):
