@@ -228,6 +228,8 @@ class ObjectSfM:
     repaired_frames: list[dict] = field(default_factory=list)
     #: The kept model against its depth-reversed twin (:func:`osn.preprocess.twin.compare_with_twin`).
     twin: dict = field(default_factory=dict)
+    #: Points deleted after the final adjustment because it left them behind a camera that sees them.
+    points_behind_dropped: int = 0
 
 
 @dataclass
@@ -317,7 +319,7 @@ def _reconstruct_in(
     cauchy = cfg.final_cauchy_px * u if cfg.final_cauchy_px > 0 else None
     if cauchy is not None:
         bundle_adjust(rec, cauchy)
-    settle_points(rec)  # the kept depths, their weights and the reported error: the final model's
+    behind = settle_points(rec)  # the kept depths, their weights and the reported error: the final model's
     twin = compare_with_twin(rec, cauchy, pixel_scale=u)
     if keep_model:
         (work / "model").mkdir()
@@ -326,6 +328,7 @@ def _reconstruct_in(
     sfm.restarts = tried
     sfm.repaired_frames = repaired
     sfm.twin = twin
+    sfm.points_behind_dropped = behind
     return sfm
 
 

@@ -272,6 +272,7 @@ def _object_report(oid: int, name: str, sfm: ObjectSfM, flags: list[np.ndarray],
         "registered_frames": len(sfm.frames),
         "features": sfm.num_features,
         "points": sfm.num_points,
+        "points_behind_dropped": sfm.points_behind_dropped,
         # Without ground truth these say how much to trust the poses: the kept model's
         # error, and how the restarts disagreed (a reversed twin fits visibly worse).
         "reprojection_error_px": sfm.reprojection_error_px,

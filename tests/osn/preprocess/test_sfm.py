@@ -50,6 +50,7 @@ def test_registration_matches_ground_truth(sfm_scene, tmp_path):
     # ... and, without ground truth, the depths in front of what other frames saw
     for r in report.objects:
         assert "error" in r or 0 <= r["occluding_depths"] < 0.5 * r["sparse_depths"], r
+        assert "error" in r or r["points_behind_dropped"] == 0, r  # no point behind a camera here
     # The consistency check (no ground truth) passes every object SfM got right: no false alarm.
     assert all(r["consistency"]["action"] == "keep" for r in report.objects if "error" not in r), report.objects
     assert inputs.meta["untrusted_depths"] == [] and set(inputs.meta["consistency"]) == {str(r["id"]) for r in report.objects if "consistency" in r}
