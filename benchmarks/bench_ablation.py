@@ -10,12 +10,14 @@ from the SfM, oracle and ground-truth stages of one ``bench_heldout.py`` run of 
 ``--presets`` for suite presets), so a
 difference between two rows is the training configuration's alone. Per run the figures of
 ``bench_heldout.py`` (valid-set IoU, best of N minus the highest-score solution, training time);
-per configuration mean ± std over scenes and training seeds, and the paired difference of IoU
-from the default's run of the same scene and seed. Everything resumes. Run:
+per configuration mean ± std over scenes and training seeds, the paired difference of IoU
+from the default's run of the same scene and seed, and on how many scenes that difference exceeds
+the default's own range over training seeds (``--spread-seeds``: extra seeds of the default
+alone). Everything resumes. Run:
 
     .venv/bin/python benchmarks/bench_ablation.py --root /tmp/dev3 --base cand --seeds 3
         [--presets dining-table,chessboard-8] [--families label-rule,free-space] [--train-seeds 0,1]
-        [--jobs 2] [--executor ray]
+        [--spread-seeds 1,2] [--jobs 2] [--executor ray]
 """
 
 from __future__ import annotations
@@ -78,10 +80,35 @@ def config_for(name: str, train_seed: int) -> dict[str, Any]:
     return base
 
 
+def default_spread(runs: list[dict[str, Any]]) -> dict[Any, float]:
+    """Per scene, the range (max - min) of the default's IoU over its training seeds: the noise a
+    family's paired difference on that scene must exceed to count (scenes with one seed: none)."""
+    by_scene: dict[Any, list[float]] = {}
+    for r in runs:
+        if r["config"] == "default" and "error" not in r and _measured(r.get("iou")):
+            by_scene.setdefault(scene_key(r["seed"]), []).append(r["iou"])
+    return {k: max(v) - min(v) for k, v in by_scene.items() if len(v) > 1}
+
+
+def beyond_spread(deltas: dict[Any, float], spread: dict[Any, float]) -> str:
+    """How many scenes' paired IoU differences ``deltas`` (scene -> difference) exceed the default's
+    spread there, lower and higher: ``"lower 3, higher 0 of 6"``; ``-`` without a measured spread."""
+    scenes = [k for k in deltas if k in spread]
+    if not scenes:
+        return "-"
+    lower = sum(deltas[k] < -spread[k] for k in scenes)
+    higher = sum(deltas[k] > spread[k] for k in scenes)
+    return f"lower {lower}, higher {higher} of {len(scenes)}"
+
+
 def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, dict]:
-    """Per configuration mean ± std of each figure, and IoU paired with the default's same run."""
+    """Per configuration mean ± std of each figure, IoU paired with the default's same run, and
+    per scene whether that difference exceeds the default's spread over training seeds
+    (:func:`default_spread`; the extra seeds of ``--spread-seeds``)."""
     ok = [r for r in runs if "error" not in r]
     ref = {(r["seed"], r["train_seed"]): r for r in ok if r["config"] == "default"}
+    spread = default_spread(ok)
+    shared = {r["train_seed"] for r in ok if r["config"] != "default"} or {r["train_seed"] for r in ok}
 
     def paired(r: dict[str, Any], key: str) -> float | None:
         d = ref.get((r["seed"], r["train_seed"]), {})
@@ -89,7 +116,9 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
 
     rows, departures = [], []
     for name in names:
-        rs = [r for r in ok if r["config"] == name]
+        # The default's extra training seeds measure its spread; its row is over the seeds the
+        # families share, so that every row averages the same runs.
+        rs = [r for r in ok if r["config"] == name and r["train_seed"] in shared]
         if not rs:
             continue
         # A figure a run could not give (no best of N without a learned set) is left out of its mean.
@@ -102,19 +131,28 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
         why = (FAMILIES[name][0] if name in FAMILIES else "OSN as published: every addition off" if name == "paper"
                else "every addition on")
         per_scene = " / ".join(f"{r['iou']:.3f}" if _measured(r.get("iou")) else "-" for r in sorted(rs, key=lambda r: (r["train_seed"], scene_key(r["seed"]))))
+        by_scene: dict[Any, list[float]] = {}
+        for r in rs:
+            if (x := paired(r, "iou")) is not None:
+                by_scene.setdefault(scene_key(r["seed"]), []).append(x)
+        beyond = "" if name == "default" else beyond_spread({k: sum(v) / len(v) for k, v in by_scene.items()}, spread)
         departures.append([name if name in ("default", "paper") else f"without {name}", why, per_scene,
-                           _mean_std(deltas, "{:+.3f}") if name != "default" else "",
+                           _mean_std(deltas, "{:+.3f}") if name != "default" else "", beyond,
                            cells[3], cells[6]])
+    if spread:
+        order = sorted(spread)
+        departures.append(["default's spread", "IoU range over its training seeds, per scene",
+                           " / ".join(f"{spread[k]:.3f}" for k in order), "", "", "", ""])
     per_run = [[r["config"], str(r["seed"]), str(r["train_seed"]),
                 *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
                 r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], scene_key(r["seed"]), r["train_seed"]))]
     heads = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scale error of matches", "training PSNR",
              "training time (s)"]
-    heads_d = ["configuration", "what the family does", "IoU per scene", "IoU - default's", "best of N - highest score (dB)",
-               "training time (s)"]
+    heads_d = ["configuration", "what the family does", "IoU per scene", "IoU - default's", "scenes beyond the default's spread",
+               "best of N - highest score (dB)", "training time (s)"]
     return {"departures": table(heads_d, departures),
             # The IoU columns alone, for the README.
-            "departures_short": table([heads_d[i] for i in (0, 2, 3)], [[r[i] for i in (0, 2, 3)] for r in departures]),
+            "departures_short": table([heads_d[i] for i in (0, 2, 3, 4)], [[r[i] for i in (0, 2, 3, 4)] for r in departures]),
             "ablation": table(["config", "switched off", "runs", *heads, "IoU - default's (paired)"], rows),
             "ablation_per_run": table(["config", "scene", "training seed", *heads, "note"], per_run)}
 
@@ -132,6 +170,8 @@ def main() -> int:
     ap.add_argument("--families", default=",".join(FAMILIES), help=f"families to switch off (default: all: {', '.join(FAMILIES)})")
     ap.add_argument("--paper", action="store_true", help="also train configs/osn-paper.yaml")
     ap.add_argument("--train-seeds", default="0", help="training seeds, comma-separated (default: 0)")
+    ap.add_argument("--spread-seeds", default="", help="extra training seeds of the default alone, comma-separated: its "
+                    "IoU range per scene over all its seeds is the spread a family's difference must exceed")
     ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published path)")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
@@ -148,6 +188,7 @@ def main() -> int:
     if bad := [f for f in families if f not in FAMILIES]:
         ap.error(f"unknown family {bad[0]!r} (expected one of {', '.join(FAMILIES)})")
     train_seeds = [int(s) for s in args.train_seeds.split(",") if s]
+    spread_seeds = [t for s in args.spread_seeds.split(",") if s and (t := int(s)) not in train_seeds]
     names = ["default", *families, *(["paper"] if args.paper else [])]
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     threads = max(1, cores // max(1, args.jobs))
@@ -155,14 +196,14 @@ def main() -> int:
     configs.mkdir(parents=True, exist_ok=True)
     jobs = []
     # Configuration-major: whole rows finish first, so a stopped run still leaves complete rows.
-    for name in names:
-        for t in train_seeds:
-            path = configs / f"{name}-s{t}.yaml"
-            path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
-            for seed in seeds:
-                label = f"abl-{name}-s{t}"
-                seed_work(args.root, seed, args.base, label, args.source)
-                jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads)))
+    # The default's spread seeds last: they only qualify the rows above.
+    for name, t in [(n, t) for n in names for t in train_seeds] + [("default", t) for t in spread_seeds]:
+        path = configs / f"{name}-s{t}.yaml"
+        path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
+        for seed in seeds:
+            label = f"abl-{name}-s{t}"
+            seed_work(args.root, seed, args.base, label, args.source)
+            jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads)))
     runs: list[dict[str, Any]] = []
     t0 = time.perf_counter()
 
@@ -179,7 +220,8 @@ def main() -> int:
     for (name, t), r in run_parallel(run_one, [((name, t), a) for name, t, _, a in jobs], args.jobs, args.executor, threads):
         report(name, t, r)
     return finish_parallel(args.out, "ablation", ablation_tables(runs, names),
-                           {"split": "development", "seeds": seeds, "train_seeds": train_seeds, "source": args.source,
+                           {"split": "development", "seeds": seeds, "train_seeds": train_seeds, "spread_seeds": spread_seeds,
+                            "source": args.source,
                             "base": args.base, "families": {f: {"why": FAMILIES[f][0], "off": FAMILIES[f][1]} for f in families}},
                            t0, args.jobs, ROOT, runs)
 

@@ -1,0 +1,36 @@
+"""The ablation's verdict columns: a family's paired difference against the default's own spread."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from bench_ablation import ablation_tables, beyond_spread, default_spread  # noqa: E402
+
+
+def _run(config: str, seed: int, train_seed: int, iou: float) -> dict:
+    return {"config": config, "seed": seed, "train_seed": train_seed, "iou": iou, "precision": 1.0, "recall": iou,
+            "train_seconds": 100.0, "seconds": 1.0, "source": "colmap"}
+
+
+def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
+    runs = [_run("default", 0, 0, 0.70), _run("default", 0, 1, 0.60), _run("default", 0, 2, 0.66),  # spread 0.10
+            _run("default", 1, 0, 0.80), _run("default", 1, 1, 0.79),                               # spread 0.01
+            _run("free-space", 0, 0, 0.65), _run("free-space", 1, 0, 0.70),
+            _run("final-scale-phase", 0, 0, 0.85), _run("final-scale-phase", 1, 0, 0.795)]
+    spread = default_spread(runs)  # keyed by bench_heldout.scene_key: (0, seed)
+    assert spread == pytest.approx({(0, 0): 0.10, (0, 1): 0.01})
+    # scene 0: -0.05 inside 0.10; scene 1: -0.10 beyond 0.01
+    assert beyond_spread({(0, 0): -0.05, (0, 1): -0.10}, spread) == "lower 1, higher 0 of 2"
+    assert beyond_spread({(0, 0): 0.15, (0, 1): -0.005}, spread) == "lower 0, higher 1 of 2"
+    assert beyond_spread({(0, 2): -0.5}, spread) == "-"  # no spread measured on that scene
+    tables = ablation_tables(runs, ["default", "free-space", "final-scale-phase"])
+    rows = {r[0]: r for r in tables["departures"]["rows"]}
+    # The default's row averages the seeds the families share (0), not its extra spread seeds.
+    assert rows["default"][2] == "0.700 / 0.800"
+    assert rows["without free-space"][3] == "-0.075 ± 0.035" and rows["without free-space"][4] == "lower 1, higher 0 of 2"
+    assert rows["without final-scale-phase"][4] == "lower 0, higher 1 of 2"
+    assert rows["default's spread"][2] == "0.100 / 0.010"
+    assert tables["departures_short"]["columns"][-1] == "scenes beyond the default's spread"
