@@ -139,10 +139,10 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
         departures.append([name if name in ("default", "paper") else f"without {name}", why, per_scene,
                            _mean_std(deltas, "{:+.3f}") if name != "default" else "", beyond,
                            cells[3], cells[6]])
-    if spread:
-        order = sorted(spread)
+    if spread:  # per scene in the order of the rows' columns; "-" where the default has one seed
+        order = sorted({scene_key(r["seed"]) for r in ok if r["config"] == "default"})
         departures.append(["default's spread", "IoU range over its training seeds, per scene",
-                           " / ".join(f"{spread[k]:.3f}" for k in order), "", "", "", ""])
+                           " / ".join(f"{spread[k]:.3f}" if k in spread else "-" for k in order), "", "", "", ""])
     per_run = [[r["config"], str(r["seed"]), str(r["train_seed"]),
                 *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
                 r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], scene_key(r["seed"]), r["train_seed"]))]
