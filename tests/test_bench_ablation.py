@@ -18,6 +18,7 @@ def _run(config: str, seed: int, train_seed: int, iou: float) -> dict:
 def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     runs = [_run("default", 0, 0, 0.70), _run("default", 0, 1, 0.60), _run("default", 0, 2, 0.66),  # spread 0.10
             _run("default", 1, 0, 0.80), _run("default", 1, 1, 0.79),                               # spread 0.01
+            _run("default", 2, 0, 0.50),                                                             # one seed: none
             _run("free-space", 0, 0, 0.65), _run("free-space", 1, 0, 0.70),
             _run("final-scale-phase", 0, 0, 0.85), _run("final-scale-phase", 1, 0, 0.795)]
     spread = default_spread(runs)  # keyed by bench_heldout.scene_key: (0, seed)
@@ -29,8 +30,8 @@ def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     tables = ablation_tables(runs, ["default", "free-space", "final-scale-phase"])
     rows = {r[0]: r for r in tables["departures"]["rows"]}
     # The default's row averages the seeds the families share (0), not its extra spread seeds.
-    assert rows["default"][2] == "0.700 / 0.800"
+    assert rows["default"][2] == "0.700 / 0.800 / 0.500"
     assert rows["without free-space"][3] == "-0.075 ± 0.035" and rows["without free-space"][4] == "lower 1, higher 0 of 2"
     assert rows["without final-scale-phase"][4] == "lower 0, higher 1 of 2"
-    assert rows["default's spread"][2] == "0.100 / 0.010"
+    assert rows["default's spread"][2] == "0.100 / 0.010 / -"
     assert tables["departures_short"]["columns"][-1] == "scenes beyond the default's spread"
