@@ -10,17 +10,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_ablation import ablation_tables, beyond_spread, default_spread  # noqa: E402
 
 
-def _run(config: str, seed: int, train_seed: int, iou: float) -> dict:
+def _run(config: str, seed: int, train_seed: int, iou: float, best_psnr: float = 20.0) -> dict:
     return {"config": config, "seed": seed, "train_seed": train_seed, "iou": iou, "precision": 1.0, "recall": iou,
-            "train_seconds": 100.0, "seconds": 1.0, "source": "colmap"}
+            "best_psnr": best_psnr, "train_seconds": 100.0, "seconds": 1.0, "source": "colmap"}
 
 
 def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     runs = [_run("default", 0, 0, 0.70), _run("default", 0, 1, 0.60), _run("default", 0, 2, 0.66),  # spread 0.10
-            _run("default", 1, 0, 0.80), _run("default", 1, 1, 0.79),                               # spread 0.01
+            _run("default", 1, 0, 0.80, 21.0), _run("default", 1, 1, 0.79, 20.5),                   # spread 0.01 (0.5 dB)
             _run("default", 2, 0, 0.50),                                                             # one seed: none
-            _run("free-space", 0, 0, 0.65), _run("free-space", 1, 0, 0.70),
-            _run("final-scale-phase", 0, 0, 0.85), _run("final-scale-phase", 1, 0, 0.795)]
+            _run("free-space", 0, 0, 0.65, 19.0), _run("free-space", 1, 0, 0.70, 20.0),
+            _run("final-scale-phase", 0, 0, 0.85), _run("final-scale-phase", 1, 0, 0.795, 21.2)]
     spread = default_spread(runs)  # keyed by bench_heldout.scene_key: (0, seed)
     assert spread == pytest.approx({(0, 0): 0.10, (0, 1): 0.01})
     # scene 0: -0.05 inside 0.10; scene 1: -0.10 beyond 0.01
@@ -33,5 +33,9 @@ def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     assert rows["default"][2] == "0.700 / 0.800 / 0.500"
     assert rows["without free-space"][3] == "-0.075 ± 0.035" and rows["without free-space"][4] == "lower 1, higher 0 of 2"
     assert rows["without final-scale-phase"][4] == "lower 0, higher 1 of 2"
+    # Best of N's PSNR paired the same way: -1 dB on both scenes; scene 0's default spread is 0 dB,
+    # scene 1's 0.5 dB, so both count.
+    assert rows["without free-space"][6] == "-1.00 ± 0.00 (lower 2, higher 0 of 2)"
+    assert rows["without final-scale-phase"][6] == "+0.10 ± 0.14 (lower 0, higher 0 of 2)"  # +0.2 dB: inside 0.5
     assert rows["default's spread"][2] == "0.100 / 0.010 / -"
-    assert tables["departures_short"]["columns"][-1] == "scenes beyond the default's spread"
+    assert tables["departures_short"]["columns"][-2:] == ["scenes beyond the default's spread", "best of N PSNR - default's (dB; scenes beyond its spread)"]
