@@ -146,23 +146,24 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
             # Best of N's PSNR, paired: an addition may earn its place by the renders, not the set.
             d_psnr = [x for r in rs if (x := paired(r, "best_psnr")) is not None]
             psnr = _mean_std(d_psnr, "{:+.2f}") + (f" ({b})" if (b := beyond_spread(per_scene_paired("best_psnr"), spread_psnr)) != "-" else "")
-        departures.append([name if name in ("default", "paper") else f"without {name}", why, per_scene,
+        departures.append([name if name in ("default", "paper") else f"without {name}", why, per_scene, cells[0],
                            _mean_std(deltas, "{:+.3f}") if name != "default" else "", beyond,
                            cells[3], psnr, cells[6]])
     if spread:  # per scene in the order of the rows' columns; "-" where the default has one seed
         order = sorted({scene_key(r["seed"]) for r in ok if r["config"] == "default"})
         departures.append(["default's spread", "IoU range over its training seeds, per scene",
-                           " / ".join(f"{spread[k]:.3f}" if k in spread else "-" for k in order), "", "", "", "", ""])
+                           " / ".join(f"{spread[k]:.3f}" if k in spread else "-" for k in order), "", "", "", "", "", ""])
     per_run = [[r["config"], str(r["seed"]), str(r["train_seed"]),
                 *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
                 r.get("error") or r.get("note", "")] for r in sorted(runs, key=lambda r: (r["config"], scene_key(r["seed"]), r["train_seed"]))]
     heads = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scale error of matches", "training PSNR",
              "training time (s)"]
-    heads_d = ["configuration", "what the family does", "IoU per scene", "IoU - default's", "scenes beyond the default's spread",
+    heads_d = ["configuration", "what the family does", "IoU per scene", "IoU", "IoU - default's", "scenes beyond the default's spread",
                "best of N - highest score (dB)", "best of N PSNR - default's (dB; scenes beyond its spread)", "training time (s)"]
     return {"departures": table(heads_d, departures),
-            # The IoU columns alone, for the README.
-            "departures_short": table([heads_d[i] for i in (0, 2, 3, 4, 6)], [[r[i] for i in (0, 2, 3, 4, 6)] for r in departures]),
+            # The IoU and PSNR verdicts alone, for the README.
+            "departures_short": table([heads_d[i] for i in (0, 3, 4, 5, 7)], [[r[i] for i in (0, 3, 4, 5, 7)] for r in departures
+                                                                              if r[0] != "default's spread"]),
             "ablation": table(["config", "switched off", "runs", *heads, "IoU - default's (paired)"], rows),
             "ablation_per_run": table(["config", "scene", "training seed", *heads, "note"], per_run)}
 

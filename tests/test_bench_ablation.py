@@ -31,11 +31,11 @@ def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     rows = {r[0]: r for r in tables["departures"]["rows"]}
     # The default's row averages the seeds the families share (0), not its extra spread seeds.
     assert rows["default"][2] == "0.700 / 0.800 / 0.500"
-    assert rows["without free-space"][3] == "-0.075 ± 0.035" and rows["without free-space"][4] == "lower 1, higher 0 of 2"
-    assert rows["without final-scale-phase"][4] == "lower 0, higher 1 of 2"
+    assert rows["without free-space"][4] == "-0.075 ± 0.035" and rows["without free-space"][5] == "lower 1, higher 0 of 2"
+    assert rows["without final-scale-phase"][5] == "lower 0, higher 1 of 2"
     # Best of N's PSNR paired the same way: -1 dB on both scenes; scene 0's default spread is 0 dB,
     # scene 1's 0.5 dB, so both count.
-    assert rows["without free-space"][6] == "-1.00 ± 0.00 (lower 2, higher 0 of 2)"
-    assert rows["without final-scale-phase"][6] == "+0.10 ± 0.14 (lower 0, higher 0 of 2)"  # +0.2 dB: inside 0.5
+    assert rows["without free-space"][7] == "-1.00 ± 0.00 (lower 2, higher 0 of 2)"
+    assert rows["without final-scale-phase"][7] == "+0.10 ± 0.14 (lower 0, higher 0 of 2)"  # +0.2 dB: inside 0.5
     assert rows["default's spread"][2] == "0.100 / 0.010 / -"
     assert tables["departures_short"]["columns"][-2:] == ["scenes beyond the default's spread", "best of N PSNR - default's (dB; scenes beyond its spread)"]
