@@ -173,7 +173,8 @@ def main() -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, required=True, help="a bench_heldout.py root of the development split")
-    ap.add_argument("--base", default="default", help="the bench_heldout.py label whose inputs every run starts from")
+    ap.add_argument("--base", default="default", help="the bench_heldout.py label whose SfM runs (LABEL-colmap) every run "
+                    "starts from: their preprocess stage wrote the oracle's inputs too")
     ap.add_argument("--seeds", type=int, default=3, help="the first K development seeds (default: 3)")
     ap.add_argument("--seed-list", default=None, help="explicit development seeds instead (A:B or a list)")
     ap.add_argument("--presets", default="", help="suite presets added to the scenes, comma-separated (their base runs "
@@ -183,7 +184,8 @@ def main() -> int:
     ap.add_argument("--train-seeds", default="0", help="training seeds, comma-separated (default: 0)")
     ap.add_argument("--spread-seeds", default="", help="extra training seeds of the default alone, comma-separated: its "
                     "IoU range per scene over all its seeds is the spread a family's difference must exceed")
-    ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published path)")
+    ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published path); oracle runs start from the same SfM base runs, so only "
+                    "the inputs differ")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
     add_executor_args(ap)
@@ -213,8 +215,10 @@ def main() -> int:
         path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
         for seed in seeds:
             label = f"abl-{name}-s{t}"
-            seed_work(args.root, seed, args.base, label, args.source)
-            jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads)))
+            # Oracle rows too start from the SfM base run (its preprocess wrote both inputs): the
+            # same stages, so that a row's two sources differ in their inputs alone.
+            extra = seed_work(args.root, seed, args.base, label, args.source, from_source="colmap")
+            jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads, extra)))
     runs: list[dict[str, Any]] = []
     t0 = time.perf_counter()
 

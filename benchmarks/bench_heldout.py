@@ -35,6 +35,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Union
 
@@ -76,16 +77,23 @@ UPSTREAM_STAGES = ("generate", "sfm-video", "preprocess", "ground-truth")
 UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
 
 
-def seed_work(root: Path, seed: Scene, base: str, label: str, source: str) -> None:
-    """Start ``SCENE/LABEL-SOURCE`` from the base run's inputs: its upstream stage records
-    and outputs (hard links where the file system allows), so ``osn demo`` resumes at training."""
+def seed_work(root: Path, seed: Scene, base: str, label: str, source: str, from_source: str | None = None) -> list[str]:
+    """Start ``SCENE/LABEL-SOURCE`` from the base run ``SCENE/BASE-FROM_SOURCE``'s inputs (its
+    upstream stage records and outputs, hard links where the file system allows), so ``osn demo``
+    resumes at training; the ``osn demo`` arguments its records need (a base run from SfM inputs
+    recorded the size of its SfM video, which oracle inputs alone would not ask for).
+
+    A preprocess stage writes both the oracle's and SfM's inputs, so an oracle run may start from an
+    SfM base run (``from_source="colmap"``): then the two runs differ in their inputs alone."""
     here = scene_dir(root, seed)
-    src = here / f"{base}-{source}"
+    src = here / f"{base}-{from_source or source}"
     if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
         raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
+    options = json.loads((src / ".done" / "preprocess.started.json").read_text()).get("options", {})
+    extra = ["--sfm-resolution", str(options["sfm_resolution"])] if "sfm_resolution" in options else []
     dst = here / f"{label}-{source}"
     if (dst / ".done").is_dir():
-        return
+        return extra
     tmp = dst.with_name(dst.name + ".part")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / ".done").mkdir(parents=True)
@@ -98,6 +106,7 @@ def seed_work(root: Path, seed: Scene, base: str, label: str, source: str) -> No
             shutil.copytree(src / d, tmp / d, copy_function=_link_or_copy)
     (tmp / "dataset").symlink_to((here / "dataset").resolve(), target_is_directory=True)
     tmp.rename(dst)
+    return extra
 
 
 def _link_or_copy(a: str, b: str) -> None:
@@ -135,8 +144,10 @@ def _env(threads: int) -> dict[str, str]:
     return {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
 
 
-def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str, n: int, max_views: int, threads: int) -> dict[str, Any]:
-    """``osn demo`` of one seed from one source on its dataset (already generated); its figures (or ``error``)."""
+def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str, n: int, max_views: int, threads: int,
+            extra: Sequence[str] = ()) -> dict[str, Any]:
+    """``osn demo`` of one seed from one source on its dataset (already generated), with ``extra``
+    arguments (:func:`seed_work`'s); its figures (or ``error``)."""
     t0 = time.perf_counter()
     dataset = scene_dir(root, seed) / "dataset"
     work = dataset.parent / f"{label}-{source}"
@@ -148,6 +159,7 @@ def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str
            "--inputs-from", source, "-n", str(n), "--max-views", str(max_views), "--workers", "1"]
     if config:
         cmd += ["--config", config]
+    cmd += list(extra)
     for _ in range(RETRIES_IN_USE):
         proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(threads))
         # The seed's other run may hold the shared dataset's lock for the seconds its generate and
@@ -295,12 +307,12 @@ def main() -> int:
     threads = max(1, cores // max(1, args.jobs))
     # Source-major, so that a seed's two runs rarely start together (they share its dataset).
     jobs = [(seed, src) for src in sources for seed in seeds]
-    if args.inputs_of:
-        for seed, src in jobs:
-            seed_work(args.root, seed, args.inputs_of, args.label, src)
+    extra = {(seed, src): seed_work(args.root, seed, args.inputs_of, args.label, src) if args.inputs_of else []
+             for seed, src in jobs}
     runs: list[dict[str, Any]] = []
     t0 = time.perf_counter()
-    job_args = lambda seed, src: (seed, src, args.root, args.config, args.label, args.n, args.max_views, threads)  # noqa: E731
+    job_args = lambda seed, src: (seed, src, args.root, args.config, args.label, args.n, args.max_views, threads,  # noqa: E731
+                                  extra[seed, src])
 
     def report(r: dict[str, Any]) -> None:
         runs.append(r)
