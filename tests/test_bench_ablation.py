@@ -38,4 +38,11 @@ def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     assert rows["without free-space"][7] == "-1.00 ± 0.00 (lower 2, higher 0 of 2)"
     assert rows["without final-scale-phase"][7] == "+0.10 ± 0.14 (lower 0, higher 0 of 2)"  # +0.2 dB: inside 0.5
     assert rows["default's spread"][2] == "0.100 / 0.010 / -"
+    # Two training seeds: a scene's IoU is their mean, its verdict the mean of its paired differences.
+    runs2 = [*runs, _run("free-space", 0, 1, 0.50, 19.0), _run("free-space", 1, 1, 0.79, 20.5)]
+    rows2 = {r[0]: r for r in ablation_tables(runs2, ["default", "free-space"])["departures"]["rows"]}
+    assert rows2["default"][2] == "0.650 / 0.795 / 0.500"  # seeds 0 and 1 (scene 2: seed 0 alone)
+    assert rows2["without free-space"][2] == "0.575 / 0.745"
+    # scene 0: (-0.05 - 0.10) / 2 inside its spread 0.10; scene 1: (-0.10 + 0) / 2 beyond 0.01
+    assert rows2["without free-space"][5] == "lower 1, higher 0 of 2"
     assert tables["departures_short"]["columns"][-2:] == ["scenes beyond the default's spread", "best of N PSNR - default's (dB; scenes beyond its spread)"]
