@@ -13,7 +13,8 @@ difference between two rows is the training configuration's alone. Per run the f
 per configuration mean ± std over scenes and training seeds, the paired difference of IoU
 from the default's run of the same scene and seed, and on how many scenes that difference exceeds
 the default's own range over training seeds (``--spread-seeds``: extra seeds of the default
-alone). Everything resumes. Run:
+alone). Everything resumes; ``--finished-only`` makes the tables from the runs that finished
+training and starts none (a queue stopped early still gives its tables). Run:
 
     .venv/bin/python benchmarks/bench_ablation.py --root /tmp/dev3 --base cand --seeds 3
         [--presets dining-table,chessboard-8] [--families label-rule,free-space] [--train-seeds 0,1]
@@ -30,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from bench_heldout import FIELDS, _mean_std, _measured, presets_arg, run_one, scene_key, seed_work
+from bench_heldout import FIELDS, _mean_std, _measured, presets_arg, run_one, scene_dir, scene_key, seed_work
 from results_json import table
 
 from benchutil import add_executor_args, finish_parallel, print_command, run_parallel
@@ -197,6 +198,8 @@ def main() -> int:
                     "IoU range per scene over all its seeds is the spread a family's difference must exceed")
     ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published path); oracle runs start from the same SfM base runs, so only "
                     "the inputs differ")
+    ap.add_argument("--finished-only", action="store_true", help="tables from the runs whose training finished (an "
+                    "unfinished run's evaluation completes); the others are listed as not run, none is started")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
     add_executor_args(ap)
@@ -218,7 +221,7 @@ def main() -> int:
     threads = max(1, cores // max(1, args.jobs))
     configs = args.root / "ablation-configs"
     configs.mkdir(parents=True, exist_ok=True)
-    jobs = []
+    jobs, not_run = [], []
     # Configuration-major: whole rows finish first, so a stopped run still leaves complete rows.
     # The default's spread seeds last: they only qualify the rows above.
     for name, t in [(n, t) for n in names for t in train_seeds] + [("default", t) for t in spread_seeds]:
@@ -226,10 +229,15 @@ def main() -> int:
         path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
         for seed in seeds:
             label = f"abl-{name}-s{t}"
+            if args.finished_only and not (scene_dir(args.root, seed) / f"{label}-{args.source}" / ".done" / "train.json").is_file():
+                not_run.append(f"{name} scene {seed} training seed {t}")
+                continue
             # Oracle rows too start from the SfM base run (its preprocess wrote both inputs): the
             # same stages, so that a row's two sources differ in their inputs alone.
             extra = seed_work(args.root, seed, args.base, label, args.source, from_source="colmap")
             jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads, extra)))
+    if not_run:
+        print(f"not run ({len(not_run)}, --finished-only): " + "; ".join(not_run), flush=True)
     runs: list[dict[str, Any]] = []
     t0 = time.perf_counter()
 
@@ -247,7 +255,7 @@ def main() -> int:
         report(name, t, r)
     return finish_parallel(args.out, "ablation", ablation_tables(runs, names),
                            {"split": "development", "seeds": seeds, "train_seeds": train_seeds, "spread_seeds": spread_seeds,
-                            "source": args.source,
+                            "source": args.source, "not_run": not_run,
                             "base": args.base, "families": {f: {"why": FAMILIES[f][0], "off": FAMILIES[f][1]} for f in families}},
                            t0, args.jobs, ROOT, runs)
 

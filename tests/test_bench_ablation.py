@@ -46,3 +46,20 @@ def test_a_difference_counts_only_beyond_the_defaults_spread_on_its_scene():
     # scene 0: (-0.05 - 0.10) / 2 inside its spread 0.10; scene 1: (-0.10 + 0) / 2 beyond 0.01
     assert rows2["without free-space"][5] == "lower 1, higher 0 of 2"
     assert tables["departures_short"]["columns"][-2:] == ["scenes beyond the default's spread", "best of N PSNR - default's (dB; scenes beyond its spread)"]
+
+
+def test_finished_only_starts_no_run_and_lists_what_is_missing(tmp_path: Path) -> None:
+    """A queue stopped early: ``--finished-only`` trains nothing and names the runs it lacks."""
+    import json
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "ablation.json"
+    proc = subprocess.run([sys.executable, str(root / "benchmarks" / "bench_ablation.py"), "--root", str(tmp_path / "abl"),
+                           "--base", "cur", "--seed-list", "0", "--families", "free-space", "--finished-only",
+                           "--out", str(out)], capture_output=True, text=True, cwd=root, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "not run (2, --finished-only): default scene 0 training seed 0; free-space scene 0 training seed 0" in proc.stdout
+    assert not (tmp_path / "abl" / "random-0").exists()  # no run started from the (absent) base
+    assert json.loads(out.read_text())["data"]["not_run"] == ["default scene 0 training seed 0",
+                                                                "free-space scene 0 training seed 0"]
