@@ -10,9 +10,14 @@ from pathlib import Path
 from typing import Any
 
 
+def command_line() -> str:
+    """``python benchmarks/NAME.py ARGS`` as a shell would need it (an empty argument quoted)."""
+    return shlex.join(["python", *sys.argv])
+
+
 def print_command() -> None:
     """Print ``command: python benchmarks/NAME.py ARGS`` (flushed, before any figure)."""
-    print("command: " + shlex.join(["python", *sys.argv]), flush=True)
+    print("command: " + command_line(), flush=True)
 
 
 def print_tables(tables: dict) -> None:
@@ -126,7 +131,7 @@ def finish_parallel(out: Path, benchmark: str, tables: dict, data: dict[str, Any
     from results_json import write_results
 
     print_tables(tables)
-    write_results(out, benchmark, "python " + " ".join(sys.argv), tables,
+    write_results(out, benchmark, command_line(), tables,
                   {**data, "runs": runs, "wall_seconds": time.perf_counter() - t0, "jobs": jobs,
                    "load_average_at_end": os.getloadavg()[0]}, root)
     print(f"wrote {out}")
