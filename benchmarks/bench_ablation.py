@@ -185,8 +185,8 @@ def main() -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, required=True, help="a bench_heldout.py root of the development split")
-    ap.add_argument("--base", default="default", help="the bench_heldout.py label whose SfM runs (LABEL-colmap) every run "
-                    "starts from: their preprocess stage wrote the oracle's inputs too")
+    ap.add_argument("--base", default="default", help="the bench_heldout.py label whose runs every run starts from: its "
+                    "SfM runs (LABEL-colmap) where they exist, whose preprocess stage wrote the oracle's inputs too")
     ap.add_argument("--seeds", type=int, default=3, help="the first K development seeds (default: 3)")
     ap.add_argument("--seed-list", default=None, help="explicit development seeds instead (A:B or a list)")
     ap.add_argument("--presets", default="", help="suite presets added to the scenes, comma-separated (their base runs "
@@ -196,8 +196,8 @@ def main() -> int:
     ap.add_argument("--train-seeds", default="0", help="training seeds, comma-separated (default: 0)")
     ap.add_argument("--spread-seeds", default="", help="extra training seeds of the default alone, comma-separated: its "
                     "IoU range per scene over all its seeds is the spread a family's difference must exceed")
-    ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published path); oracle runs start from the same SfM base runs, so only "
-                    "the inputs differ")
+    ap.add_argument("--source", choices=("colmap", "oracle"), default="colmap", help="inputs (default: colmap, the published "
+                    "path); oracle runs start from the same SfM base runs where there are, so only the inputs differ")
     ap.add_argument("--finished-only", action="store_true", help="tables from the runs whose training finished (an "
                     "unfinished run's evaluation completes); the others are listed as not run, none is started")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
@@ -232,9 +232,10 @@ def main() -> int:
             if args.finished_only and not (scene_dir(args.root, seed) / f"{label}-{args.source}" / ".done" / "train.json").is_file():
                 not_run.append(f"{name} scene {seed} training seed {t}")
                 continue
-            # Oracle rows too start from the SfM base run (its preprocess wrote both inputs): the
-            # same stages, so that a row's two sources differ in their inputs alone.
-            extra = seed_work(args.root, seed, args.base, label, args.source, from_source="colmap")
+            # Oracle rows too start from the SfM base run where there is one (its preprocess wrote
+            # both inputs): the same stages, so that a row's two sources differ in their inputs alone.
+            sfm_base = scene_dir(args.root, seed) / f"{args.base}-colmap" / ".done" / "preprocess.json"
+            extra = seed_work(args.root, seed, args.base, label, args.source, from_source="colmap" if sfm_base.is_file() else None)
             jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads, extra)))
     if not_run:
         print(f"not run ({len(not_run)}, --finished-only): " + "; ".join(not_run), flush=True)
