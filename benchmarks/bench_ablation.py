@@ -180,6 +180,31 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
             "ablation_per_run": table(["config", "scene", "training seed", *heads, "note"], per_run)}
 
 
+def plan_runs(root: Path, base: str, source: str, names: list[str], train_seeds: list[int], spread_seeds: list[int],
+              seeds: list[Any], finished_only: bool) -> tuple[list[tuple], list[str]]:
+    """The runs to make, each ``(row, training seed, scene, config path, label, osn demo arguments)``
+    with its config written under ``ROOT/ablation-configs`` and its directory started from the base
+    run's inputs (:func:`bench_heldout.seed_work`); and, with ``finished_only``, the runs left out
+    because their training has not finished (named ``"ROW scene S training seed T"``)."""
+    configs = root / "ablation-configs"
+    configs.mkdir(parents=True, exist_ok=True)
+    jobs, not_run = [], []
+    # Configuration-major: whole rows finish first, so a stopped run still leaves complete rows.
+    # The default's spread seeds last: they only qualify the rows above.
+    for name, t in [(n, t) for n in names for t in train_seeds] + [("default", t) for t in spread_seeds]:
+        path = configs / f"{name}-s{t}.yaml"
+        path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
+        for seed in seeds:
+            label = f"abl-{name}-s{t}"
+            if finished_only and not (scene_dir(root, seed) / f"{label}-{source}" / ".done" / "train.json").is_file():
+                not_run.append(f"{name} scene {seed} training seed {t}")
+                continue
+            # Oracle rows too start from the SfM base run where there is one (its preprocess wrote
+            # both inputs): the same stages, so that a row's two sources differ in their inputs alone.
+            jobs.append((name, t, seed, str(path), label, seed_work(root, seed, base, label, source, prefer_sfm=True)))
+    return jobs, not_run
+
+
 def main() -> int:
     from benchgen.scene.procedural import SPLITS, parse_seeds
 
@@ -219,24 +244,9 @@ def main() -> int:
     names = ["default", *families, *(["paper"] if args.paper else [])]
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     threads = max(1, cores // max(1, args.jobs))
-    configs = args.root / "ablation-configs"
-    configs.mkdir(parents=True, exist_ok=True)
-    jobs, not_run = [], []
-    # Configuration-major: whole rows finish first, so a stopped run still leaves complete rows.
-    # The default's spread seeds last: they only qualify the rows above.
-    for name, t in [(n, t) for n in names for t in train_seeds] + [("default", t) for t in spread_seeds]:
-        path = configs / f"{name}-s{t}.yaml"
-        path.write_text(yaml.safe_dump(config_for(name, t), sort_keys=False))
-        for seed in seeds:
-            label = f"abl-{name}-s{t}"
-            if args.finished_only and not (scene_dir(args.root, seed) / f"{label}-{args.source}" / ".done" / "train.json").is_file():
-                not_run.append(f"{name} scene {seed} training seed {t}")
-                continue
-            # Oracle rows too start from the SfM base run where there is one (its preprocess wrote
-            # both inputs): the same stages, so that a row's two sources differ in their inputs alone.
-            sfm_base = scene_dir(args.root, seed) / f"{args.base}-colmap" / ".done" / "preprocess.json"
-            extra = seed_work(args.root, seed, args.base, label, args.source, from_source="colmap" if sfm_base.is_file() else None)
-            jobs.append((name, t, seed, (seed, args.source, args.root, str(path), label, args.n, args.max_views, threads, extra)))
+    jobs, not_run = plan_runs(args.root, args.base, args.source, names, train_seeds, spread_seeds, seeds, args.finished_only)
+    jobs = [(name, t, seed, (seed, args.source, args.root, path, label, args.n, args.max_views, threads, extra))
+            for name, t, seed, path, label, extra in jobs]
     if not_run:
         print(f"not run ({len(not_run)}, --finished-only): " + "; ".join(not_run), flush=True)
     runs: list[dict[str, Any]] = []

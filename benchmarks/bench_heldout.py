@@ -77,17 +77,21 @@ UPSTREAM_STAGES = ("generate", "sfm-video", "preprocess", "ground-truth")
 UPSTREAM_DIRS = ("sfm", "sfm_video", "oracle")
 
 
-def seed_work(root: Path, seed: Scene, base: str, label: str, source: str, from_source: str | None = None) -> list[str]:
-    """Start ``SCENE/LABEL-SOURCE`` from the base run ``SCENE/BASE-FROM_SOURCE``'s inputs (its
-    upstream stage records and outputs, hard links where the file system allows), so ``osn demo``
-    resumes at training; the ``osn demo`` arguments its records need (a base run from SfM inputs
-    recorded the size of its SfM video, which oracle inputs alone would not ask for).
+def seed_work(root: Path, seed: Scene, base: str, label: str, source: str, prefer_sfm: bool = False) -> list[str]:
+    """Start ``SCENE/LABEL-SOURCE`` from the base run ``SCENE/BASE-SOURCE``'s inputs (its upstream
+    stage records and outputs, hard links where the file system allows), so ``osn demo`` resumes at
+    training; the ``osn demo`` arguments its records need (a base run from SfM inputs recorded the
+    size of its SfM video, which oracle inputs alone would not ask for).
 
-    A preprocess stage writes both the oracle's and SfM's inputs, so an oracle run may start from an
-    SfM base run (``from_source="colmap"``): then the two runs differ in their inputs alone."""
+    A preprocess stage writes both the oracle's and SfM's inputs, so with ``prefer_sfm`` any run
+    starts from the SfM base run ``SCENE/BASE-colmap`` where that finished its inputs: then a
+    scene's runs from the two sources differ in their inputs alone."""
     here = scene_dir(root, seed)
-    src = here / f"{base}-{from_source or source}"
-    if not (src / ".done" / "ground-truth.json").is_file() or not (src / ".done" / "preprocess.json").is_file():
+    finished = lambda run: all((run / ".done" / f"{s}.json").is_file() for s in ("preprocess", "ground-truth"))  # noqa: E731
+    src = here / f"{base}-colmap"
+    if not (prefer_sfm and finished(src)):
+        src = here / f"{base}-{source}"
+    if not finished(src):
         raise SystemExit(f"{src}: no finished inputs to start from (run bench_heldout.py --label {base} first)")
     options = json.loads((src / ".done" / "preprocess.started.json").read_text()).get("options", {})
     extra = ["--sfm-resolution", str(options["sfm_resolution"])] if "sfm_resolution" in options else []

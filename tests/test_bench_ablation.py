@@ -63,3 +63,27 @@ def test_finished_only_starts_no_run_and_lists_what_is_missing(tmp_path: Path) -
     assert not (tmp_path / "abl" / "random-0").exists()  # no run started from the (absent) base
     assert json.loads(out.read_text())["data"]["not_run"] == ["default scene 0 training seed 0",
                                                                 "free-space scene 0 training seed 0"]
+
+
+def test_finished_only_keeps_the_finished_runs_and_names_the_rest(tmp_path: Path) -> None:
+    """A queue stopped part-way: the run whose training finished is kept (its evaluation resumes from
+    the SfM base run's inputs); the one that did not is named, not started."""
+    from bench_ablation import plan_runs
+
+    from tests.test_bench_seed_work import _base
+
+    _base(tmp_path, "cur-colmap", {"sfm_resolution": 768})
+    done = tmp_path / "random-0" / "abl-default-s0-colmap" / ".done"
+    done.mkdir(parents=True)
+    (done / "train.json").write_text("{}")
+    jobs, not_run = plan_runs(tmp_path, "cur", "colmap", ["default", "free-space"], [0], [], [0], finished_only=True)
+    assert [(name, t, seed, label, extra) for name, t, seed, _, label, extra in jobs] == [
+        ("default", 0, 0, "abl-default-s0", ["--sfm-resolution", "768"])]
+    assert not_run == ["free-space scene 0 training seed 0"]
+    assert not (tmp_path / "random-0" / "abl-free-space-s0-colmap").exists()
+    assert (tmp_path / "random-0" / "abl-default-s0-colmap" / ".done" / "train.json").read_text() == "{}"  # kept as it was
+    # Without --finished-only both run; the free-space run starts from the base's inputs.
+    jobs, not_run = plan_runs(tmp_path, "cur", "colmap", ["default", "free-space"], [0], [], [0], finished_only=False)
+    assert [j[0] for j in jobs] == ["default", "free-space"] and not_run == []
+    assert (tmp_path / "random-0" / "abl-free-space-s0-colmap" / "sfm" / "inputs.npz").read_bytes() == b"sfm"
+    assert "w_free: 0.0" in (tmp_path / "ablation-configs" / "free-space-s0.yaml").read_text()

@@ -28,7 +28,7 @@ def _base(root: Path, name: str, preprocess_options: dict) -> Path:
 
 def test_an_oracle_run_starts_from_the_sfm_base_with_its_sfm_video_size(tmp_path: Path) -> None:
     base = _base(tmp_path, "cur-colmap", {"sfm_resolution": 768, "training_frames": "benchmark"})
-    extra = seed_work(tmp_path, 0, "cur", "abl-default-s0", "oracle", from_source="colmap")
+    extra = seed_work(tmp_path, 0, "cur", "abl-default-s0", "oracle", prefer_sfm=True)
     # Without it, osn demo would see other preprocess options (no SfM video) and refuse to resume.
     assert extra == ["--sfm-resolution", "768"]
     run = tmp_path / "random-0" / "abl-default-s0-oracle"
@@ -39,12 +39,15 @@ def test_an_oracle_run_starts_from_the_sfm_base_with_its_sfm_video_size(tmp_path
     assert (run / "dataset").resolve() == (tmp_path / "random-0" / "dataset").resolve()
     # Started once: a second call keeps what the run has done since.
     (run / ".done" / "train.started.json").write_text("{}")
-    assert seed_work(tmp_path, 0, "cur", "abl-default-s0", "oracle", from_source="colmap") == extra
+    assert seed_work(tmp_path, 0, "cur", "abl-default-s0", "oracle", prefer_sfm=True) == extra
     assert (run / ".done" / "train.started.json").is_file()
 
 
 def test_a_base_on_the_benchmarks_own_frames_needs_no_arguments_and_a_missing_base_stops(tmp_path: Path) -> None:
     _base(tmp_path, "cur-oracle", {"drop_occluding": "training"})
     assert seed_work(tmp_path, 0, "cur", "next", "oracle") == []
+    # No SfM base run to prefer: the run starts from its own source's.
+    assert seed_work(tmp_path, 0, "cur", "next2", "oracle", prefer_sfm=True) == []
+    assert (tmp_path / "random-0" / "next2-oracle" / "oracle" / "inputs.npz").read_bytes() == b"oracle"
     with pytest.raises(SystemExit, match="cur-colmap: no finished inputs"):
-        seed_work(tmp_path, 0, "cur", "next2", "oracle", from_source="colmap")
+        seed_work(tmp_path, 0, "cur", "next3", "colmap", prefer_sfm=True)
