@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchutil import print_command  # noqa: E402
+from benchutil import command_line, print_command  # noqa: E402
 from results_json import table, write_results  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--test-time", type=int, default=7)
     p.add_argument("--note", default="", help="provenance note stored with the figures")
     args = p.parse_args(argv)
-    print_command()
+    print_command("benchmarks/bench_addon_render.py", argv)
     from benchgen.score.metrics import psnr
     from osn.export.blender_render import View, render_export
     from osn.export.from_run import export_run
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     tables = {"addon_render": table(
         ["render", "view", "samples / px", "PSNR vs OSN (dB)", "PSNR vs video (dB)", "OSN vs video (dB)", "Blender s", "OSN s"], rows)}
     W, H = data.width, data.height
-    write_results(args.out, "addon_render", "python " + " ".join(["benchmarks/bench_addon_render.py", *(argv or sys.argv[1:])]),
+    write_results(args.out, "addon_render", command_line("benchmarks/bench_addon_render.py", argv),
                   tables, {"work": str(args.work), "note": args.note, "resolution": [W, H], "export_seconds": export_s,
                            "renders": figures}, REPO)
     print(f"wrote {args.out}")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from results_json import table, write_results
 
-from benchutil import print_command, print_tables
+from benchutil import command_line, print_command, print_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,7 +53,7 @@ def main() -> int:
                                         "lowest worst share (%)", "highest worst share (%)"], summary)}
     print_tables(ts)
     if args.out:
-        write_results(args.out, "depth_noise", "python " + " ".join(sys.argv), ts, {"inputs": data}, ROOT)
+        write_results(args.out, "depth_noise", command_line(), ts, {"inputs": data}, ROOT)
         print(f"wrote {args.out}")
     return 0
 

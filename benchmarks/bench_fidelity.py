@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchutil import print_command  # noqa: E402
+from benchutil import command_line, print_command  # noqa: E402
 from results_json import table, write_results  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the spray")
     ap.add_argument("--workers", type=int, default=2, help="benchgen score --workers")
     a = ap.parse_args(argv)
-    print_command()
+    print_command("benchmarks/bench_fidelity.py", argv)
     t0 = time.perf_counter()
     scratch = a.scratch or a.work / "fidelity"
     scratch.mkdir(parents=True, exist_ok=True)
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                       "fidelity": {k: v for k, v in s["fidelity"].items() if k != "per_ground_truth"},
                       "coverage": s["coverage"], "evaluate_table": e["table"], "in_region": r["in_region"],
                       "scale_error_mean": float(np.mean(err)) if err else None}
-    command = "python " + " ".join(["benchmarks/bench_fidelity.py", *(argv if argv is not None else sys.argv[1:])])
+    command = command_line("benchmarks/bench_fidelity.py", argv)
     write_results(a.out, "fidelity", command, tables(results, levels), data, REPO)
     for t in tables(results, levels).values():
         print("| " + " | ".join(t["columns"]) + " |")

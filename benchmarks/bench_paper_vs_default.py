@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_heldout import _mean_std  # noqa: E402
-from benchutil import print_command  # noqa: E402
+from benchutil import command_line, print_command  # noqa: E402
 from results_json import table, write_results  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-n", type=int, default=1000, help="samples drawn per run")
     ap.add_argument("--max-views", type=int, default=30, help="test views evaluated per ground truth")
     a = ap.parse_args(argv)
-    print_command()
+    print_command("benchmarks/bench_paper_vs_default.py", argv)
     configs = [REPO / c if not Path(c).is_absolute() else Path(c) for c in a.configs.split(",")]
     seeds = [int(s) for s in a.seeds.split(",")]
     root = a.work / "paper-vs-default"
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     tables = {"runs": table(cols, rows), "summary": table(cols, summary),
               "summary_short": table([f"config ({len(seeds)} seeds)"] + [cols[i] for i in short[1:]],
                                      [[r[i] for i in short] for r in summary])}
-    command = "python " + " ".join(["benchmarks/bench_paper_vs_default.py", *(argv if argv is not None else sys.argv[1:])])
+    command = command_line("benchmarks/bench_paper_vs_default.py", argv)
     write_results(a.out, "paper_vs_default", command, tables, {"runs": recs, "dataset": str(a.work / "dataset")}, cwd=REPO)
     print(f"wrote {a.out}")
     return 0

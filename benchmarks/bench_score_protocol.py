@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import print_command
+from benchutil import command_line, print_command
 from results_json import table, write_results
 
 REPO = Path(__file__).resolve().parents[1]
@@ -282,7 +282,7 @@ def main() -> int:
             "runs": {k: {"wall_s": v["wall_s"], "cpu_s": v["cpu_s"], "timings": v["timings"], "note": v["note"],
                          "load_average": v["load"]}
                      for k, v in runs.items()}}
-    write_results(Path(args.results), "score_speed", " ".join(["python", *sys.argv]), {"score_speed": table(columns, rows),
+    write_results(Path(args.results), "score_speed", command_line(), {"score_speed": table(columns, rows),
                   "score_speed_parts": table(["part of the candidate pass", "CPU ms per candidate and view",
                                               f"CPU s for N x V = {args.n} x {views}"], parts)},
                   data, REPO)

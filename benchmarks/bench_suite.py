@@ -24,7 +24,7 @@ from pathlib import Path
 
 from benchgen.render.suite import SUITE_PRESETS, run_suite
 
-from benchutil import print_command
+from benchutil import command_line, print_command
 
 #: Test views per ground truth in OSN's evaluation (evenly spread; the demo's default is 30): the
 #: scoring of 50 ground truths dominates a preset's time, and 10 views keep the suite near an hour.
@@ -72,7 +72,7 @@ def main() -> None:
     print(f"load average at start: {os.getloadavg()}", flush=True)
     root = Path(args.root)
     presets = [p for p in args.presets.split(",") if p]
-    results: dict = {"command": " ".join(["python", *sys.argv])}
+    results: dict = {"command": command_line()}
     quiet = lambda line: None  # noqa: E731 - the suite's per-preset lines; the tables are printed below
     rows = {64: run_suite(root / "64", presets, resolution=64, workers=args.workers, progress=False, echo=quiet)}
     if not args.skip_128:

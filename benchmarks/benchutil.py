@@ -10,14 +10,15 @@ from pathlib import Path
 from typing import Any
 
 
-def command_line() -> str:
-    """``python benchmarks/NAME.py ARGS`` as a shell would need it (an empty argument quoted)."""
-    return shlex.join(["python", *sys.argv])
+def command_line(script: str | None = None, argv: list[str] | None = None) -> str:
+    """``python benchmarks/NAME.py ARGS`` as a shell would need it (an empty argument quoted): the
+    process's own command line, or ``script`` with ``argv`` where a ``main(argv)`` was called."""
+    return shlex.join(["python", *([sys.argv[0], *sys.argv[1:]] if argv is None else [script or sys.argv[0], *argv])])
 
 
-def print_command() -> None:
-    """Print ``command: python benchmarks/NAME.py ARGS`` (flushed, before any figure)."""
-    print("command: " + command_line(), flush=True)
+def print_command(script: str | None = None, argv: list[str] | None = None) -> None:
+    """Print ``command: python benchmarks/NAME.py ARGS`` (:func:`command_line`; flushed, before any figure)."""
+    print("command: " + command_line(script, argv), flush=True)
 
 
 def print_tables(tables: dict) -> None:
