@@ -8,7 +8,9 @@ demo's resolution with ``--inputs-from colmap``, or ``--inputs-from oracle``; ``
 valid-set IoU / precision / recall against the exact region, best of N minus the highest-score
 solution (dB, through the scorer), the mean scale error of the matches, training PSNR and time.
 Per source: mean ± std over seeds and the worst seed's IoU. Everything resumes (datasets and demo
-stages), so a killed run is rerun with the same command.
+stages), so a killed run is rerun with the same command. ``--with LABELS`` puts the finished runs of
+other configurations of the same root (``--label paper --inputs-of default`` runs, say) in the
+same tables, read from their reports without running anything.
 
 ``--presets`` adds suite presets to the development split's scenes at the family's size (64 px,
 G = 20; the defaults were tuned on them, so never in a held-out report): ``PRESET`` in a table's
@@ -21,7 +23,7 @@ the layout of ``results_json.py``). Run:
 
     .venv/bin/python benchmarks/bench_heldout.py --root /tmp/heldout --seeds 3 [--split held-out]
         [--sources colmap,oracle] [--config configs/osn-paper.yaml --label paper] [--jobs 2]
-        [--split development --presets dining-table,chessboard-8]
+        [--split development --presets dining-table,chessboard-8] [--with paper]
 """
 
 from __future__ import annotations
@@ -174,21 +176,42 @@ def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str
     (work / "bench.log").write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:
         error = (proc.stderr.strip().splitlines() or ["?"])[-1]
-        trained = work / ".done" / "train.json"
-        if "accepts none" in error and trained.is_file():
-            # Training finished but the sampler's uniform draws found no valid configuration: the
-            # learned set is empty or too small for them. A result, not a crash: the valid-set
-            # figures are the training monitor's last (against the same exact region); with no
-            # sample there is no best of N.
-            t = json.loads(trained.read_text())
-            last = _last_monitor(work / "run" / "metrics.jsonl")
-            return {"seed": seed, "source": source, "iou": last.get("iou", t["summary"]["iou"]),
-                    "precision": last.get("precision"), "recall": last.get("recall"),
-                    "best_minus_highest_db": None, "scale_error": None, "train_psnr": t["summary"]["psnr"],
-                    "train_seconds": t["seconds"], "seconds": time.perf_counter() - t0,
-                    "note": "no sample (valid-set figures from the training monitor): " + error.removeprefix("osn: error: ")}
+        if (found := no_sample_figures(work, error)) is not None:
+            return {"seed": seed, "source": source, **found, "seconds": time.perf_counter() - t0}
         return {"seed": seed, "source": source, "error": error, "seconds": time.perf_counter() - t0}
     return {"seed": seed, "source": source, **figures(work), "seconds": time.perf_counter() - t0}
+
+
+def no_sample_figures(work: Path, error: str) -> dict[str, Any] | None:
+    """The figures of a demo work directory whose training finished but whose sampler stopped with
+    ``error`` because its uniform draws found no valid configuration (the learned set is empty or
+    too small for them); None for any other failure.
+
+    A result, not a crash: the valid-set figures are the training monitor's last (against the same
+    exact region); with no sample there is no best of N."""
+    trained = work / ".done" / "train.json"
+    if "accepts none" not in error or not trained.is_file():
+        return None
+    t = json.loads(trained.read_text())
+    last = _last_monitor(work / "run" / "metrics.jsonl")
+    return {"iou": last.get("iou", t["summary"]["iou"]), "precision": last.get("precision"), "recall": last.get("recall"),
+            "best_minus_highest_db": None, "scale_error": None, "train_psnr": t["summary"]["psnr"],
+            "train_seconds": t["seconds"],
+            "note": "no sample (valid-set figures from the training monitor): " + error.removeprefix("osn: error: ")}
+
+
+def finished_figures(root: Path, seed: Scene, label: str, source: str) -> dict[str, Any] | None:
+    """The figures of the run ``SCENE/LABEL-SOURCE`` as :func:`run_one` left them, read without
+    running anything; None where that run did not finish (no report, and no sampler that found
+    nothing after a finished training)."""
+    work = scene_dir(root, seed) / f"{label}-{source}"
+    if (work / "report" / "metrics.json").is_file() and (work / "stages.json").is_file():
+        found = figures(work)
+    else:
+        log = work / "bench.log"
+        lines = log.read_text().strip().splitlines() if log.is_file() else []
+        found = no_sample_figures(work, lines[-1]) if lines else None
+    return None if found is None else {"seed": seed, "source": source, **found, "seconds": 0.0}
 
 
 def _last_monitor(path: Path) -> dict[str, Any]:
@@ -240,15 +263,21 @@ HEADERS = ["IoU", "precision", "recall", "best of N - highest score (dB)", "scal
            "training time (s)"]
 
 
-def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
+def tables(runs: list[dict[str, Any]]) -> dict[str, dict]:
+    """Per run and pooled per configuration (``config``, in the order runs name it) and source."""
     ok = [r for r in runs if "error" not in r]
-    per_seed = [[str(r["seed"]), r["source"], *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
-                 r.get("note", "")] for r in sorted(ok, key=lambda r: (scene_key(r["seed"]), r["source"]))]
-    per_seed += [[str(r["seed"]), r["source"], *["-"] * len(FIELDS), f"failed: {r['error']}"] for r in runs if "error" in r]
+    labels = list(dict.fromkeys(r["config"] for r in runs))
+    order = lambda r: (labels.index(r["config"]), scene_key(r["seed"]), r["source"])  # noqa: E731
+    per_seed = [[r["config"], str(r["seed"]), r["source"], *(fmt.format(r[k]) if r.get(k) is not None else "-" for k, fmt in FIELDS),
+                 r.get("note", "")] for r in sorted(ok, key=order)]
+    per_seed += [[r["config"], str(r["seed"]), r["source"], *["-"] * len(FIELDS), f"failed: {r['error']}"]
+                 for r in sorted(runs, key=order) if "error" in r]
     pooled = []
-    for source in SOURCES:
-        rs = [r for r in ok if r["source"] == source]
-        if rs:
+    for label in labels:
+        for source in SOURCES:
+            rs = [r for r in ok if r["source"] == source and r["config"] == label]
+            if not rs:
+                continue
             # A figure a run could not give (no best of N from an empty learned set) is left out of
             # its mean; the count beside it says how many runs it averages.
             cells = []
@@ -260,7 +289,7 @@ def tables(runs: list[dict[str, Any]], label: str) -> dict[str, dict]:
             ious = [r["iou"] for r in rs if _measured(r.get("iou"))]
             pooled.append([label, source, str(len(rs)), *cells, f"{min(ious):.3f}" if ious else "-"])
     return {"heldout_pooled": table(["config", "inputs", "seeds", *HEADERS, "worst seed's IoU"], pooled),
-            "heldout_per_seed": table(["scene", "inputs", *HEADERS, "note"], per_seed)}
+            "heldout_per_seed": table(["config", "scene", "inputs", *HEADERS, "note"], per_seed)}
 
 
 def presets_arg(ap: argparse.ArgumentParser, text: str, split: str) -> list[str]:
@@ -293,6 +322,9 @@ def main() -> int:
     ap.add_argument("--inputs-of", default=None, metavar="LABEL",
                     help="start every run from the SfM, oracle and ground-truth stages of LABEL's finished runs "
                          "(train and evaluate only: a new training config on the same inputs)")
+    ap.add_argument("--with", dest="also", default="", metavar="LABELS",
+                    help="comma-separated labels whose finished runs of the same scenes and sources join the tables "
+                         "beside --label's (read, never started; the ones not finished are listed)")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
     add_executor_args(ap)
@@ -318,10 +350,11 @@ def main() -> int:
     job_args = lambda seed, src: (seed, src, args.root, args.config, args.label, args.n, args.max_views, threads,  # noqa: E731
                                   extra[seed, src])
 
-    def report(r: dict[str, Any]) -> None:
+    def report(r: dict[str, Any], label: str = args.label) -> None:
+        r = {**r, "config": label}
         runs.append(r)
         text = r.get("error") or " ".join(f"{k} {fmt.format(r[k])}" for k, fmt in FIELDS if r.get(k) is not None)
-        print(f"seed {r['seed']} {r['source']}: {text} ({r['seconds']:.0f} s)", flush=True)
+        print(f"{label} seed {r['seed']} {r['source']}: {text} ({r['seconds']:.0f} s)", flush=True)
 
     failed: dict[int, str] = {}
     if args.executor == "ray":
@@ -338,8 +371,19 @@ def main() -> int:
     for seed, err in failed.items():
         for src in sources:
             report({"seed": seed, "source": src, "error": err, "seconds": 0.0})
-    return finish_parallel(args.out, "heldout", tables(runs, args.label),
-                           {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config}, t0, args.jobs, ROOT, runs)
+    not_finished = []
+    for label in [x for x in args.also.split(",") if x]:
+        for seed, src in jobs:
+            if (r := finished_figures(args.root, seed, label, src)) is not None:
+                report(r, label)
+            else:
+                not_finished.append(f"{label} seed {seed} {src}")
+    if not_finished:
+        print(f"not finished ({len(not_finished)}, --with): " + "; ".join(not_finished), flush=True)
+    return finish_parallel(args.out, "heldout", tables(runs),
+                           {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config,
+                            "with": [x for x in args.also.split(",") if x], "not_finished": not_finished},
+                           t0, args.jobs, ROOT, runs)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -157,3 +157,22 @@ def test_benchgen_score_reproduces_the_evaluation_from_the_written_candidates(de
         assert s["summary"]["psnr"]["mean"] == pytest.approx(m["table"][row]["psnr"][0], abs=0.02)
         if kind == "preselected":
             assert [x["match"] for x in s["per_ground_truth"]] == [f"sample_{g['sample']:05d}" for g in m["per_gt"]]
+
+
+def test_the_heldout_benchmark_reads_a_finished_demo_without_running_it(demo, tmp_path):
+    """``bench_heldout.py --with LABEL``: a finished run's figures come from its report and stage
+    records; a run that did not finish is not read."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_heldout import finished_figures, tables
+
+    (tmp_path / "random-0").mkdir()
+    (tmp_path / "random-0" / "paper-oracle").symlink_to(demo, target_is_directory=True)
+    m = json.loads((demo / "report" / "metrics.json").read_text())
+    r = finished_figures(tmp_path, 0, "paper", "oracle")
+    assert r["iou"] == m["valid_set"]["iou"] and r["recall"] == m["valid_set"]["recall"]
+    assert r["best_minus_highest_db"] == pytest.approx(m["table"]["best of 60"]["psnr"][0] - m["table"]["highest score"]["psnr"][0])
+    assert r["train_seconds"] > 0 and "note" not in r
+    assert finished_figures(tmp_path, 0, "paper", "colmap") is None and finished_figures(tmp_path, 0, "other", "oracle") is None
+    t = tables([{**r, "config": "default"}, {**r, "config": "paper"}])
+    assert [row[:3] for row in t["heldout_pooled"]["rows"]] == [["default", "oracle", "1"], ["paper", "oracle", "1"]]
+    assert [row[:3] for row in t["heldout_per_seed"]["rows"]] == [["default", "0", "oracle"], ["paper", "0", "oracle"]]

@@ -1,0 +1,37 @@
+"""A held-out run whose sampler found nothing: a result read from its records, not a crash."""
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from bench_heldout import finished_figures, tables  # noqa: E402
+
+NONE_FOUND = ("osn: error: the scale network accepts none of 200000 uniform draws, nor a point climbing from the best "
+              "of them: no valid configuration")
+
+
+def _trained_without_sample(work: Path, last_line: str) -> None:
+    (work / ".done").mkdir(parents=True)
+    (work / "run").mkdir()
+    (work / ".done" / "train.json").write_text(json.dumps({"seconds": 71.2, "summary": {"psnr": 25.6, "iou": 0.0}}))
+    (work / "run" / "metrics.jsonl").write_text(
+        json.dumps({"iteration": 700, "iou": 0.2, "precision": 0.5, "recall": 0.1}) + "\n"
+        + json.dumps({"iteration": 1400, "iou": 0.01, "precision": 0.9, "recall": 0.005}) + "\n"
+        + json.dumps({"iteration": 1400, "psnr": 25.6}) + "\n")
+    (work / "bench.log").write_text("export: sampled object 6\n" + last_line + "\n")
+
+
+def test_a_run_whose_sampler_found_nothing_reports_the_monitors_last_figures(tmp_path: Path) -> None:
+    _trained_without_sample(tmp_path / "random-1000" / "paper-colmap", NONE_FOUND)
+    r = finished_figures(tmp_path, 1000, "paper", "colmap")
+    assert (r["iou"], r["precision"], r["recall"]) == (0.01, 0.9, 0.005)  # the last record with valid-set figures
+    assert r["best_minus_highest_db"] is None and r["train_seconds"] == 71.2 and r["note"].startswith("no sample")
+    row = tables([{**r, "config": "paper"}])["heldout_pooled"]["rows"][0]
+    assert row[:4] == ["paper", "colmap", "1", "0.010"] and row[6] == "- (0 of 1)"  # no best of N to average
+
+
+def test_a_run_that_failed_otherwise_is_not_read_as_finished(tmp_path: Path) -> None:
+    _trained_without_sample(tmp_path / "random-1000" / "paper-colmap", "osn: error: spec.yaml: missing file")
+    assert finished_figures(tmp_path, 1000, "paper", "colmap") is None
