@@ -325,6 +325,8 @@ def main() -> int:
     ap.add_argument("--with", dest="also", default="", metavar="LABELS",
                     help="comma-separated labels whose finished runs of the same scenes and sources join the tables "
                          "beside --label's (read, never started; the ones not finished are listed)")
+    ap.add_argument("--conditions", default="", metavar="TEXT",
+                    help="what the tables' provenance line should add (runs resumed from an older commit, other load)")
     ap.add_argument("-n", type=int, default=1000, help="sampled configurations N (default: 1000)")
     ap.add_argument("--max-views", type=int, default=30, help="test views per ground truth (default: 30)")
     add_executor_args(ap)
@@ -382,7 +384,8 @@ def main() -> int:
         print(f"not finished ({len(not_finished)}, --with): " + "; ".join(not_finished), flush=True)
     return finish_parallel(args.out, "heldout", tables(runs),
                            {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config,
-                            "with": [x for x in args.also.split(",") if x], "not_finished": not_finished},
+                            "with": [x for x in args.also.split(",") if x], "not_finished": not_finished,
+                            **({"conditions": args.conditions} if args.conditions else {})},
                            t0, args.jobs, ROOT, runs)
 
 if __name__ == "__main__":
