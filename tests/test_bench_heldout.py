@@ -35,3 +35,12 @@ def test_a_run_whose_sampler_found_nothing_reports_the_monitors_last_figures(tmp
 def test_a_run_that_failed_otherwise_is_not_read_as_finished(tmp_path: Path) -> None:
     _trained_without_sample(tmp_path / "random-1000" / "paper-colmap", "osn: error: spec.yaml: missing file")
     assert finished_figures(tmp_path, 1000, "paper", "colmap") is None
+
+
+def test_the_short_table_keeps_the_set_the_renders_and_the_time() -> None:
+    run = {"seed": 1000, "source": "colmap", "iou": 0.5, "precision": 0.6, "recall": 0.7, "best_minus_highest_db": 2.0,
+           "scale_error": 0.2, "train_psnr": 28.0, "train_seconds": 150.0, "config": "defaults"}
+    t = tables([run, {**run, "seed": 1001, "iou": 0.3}])
+    assert t["heldout_short"]["columns"] == ["config", "inputs", "seeds", "IoU", "best of N - highest score (dB)",
+                                             "training time (s)", "worst seed's IoU"]
+    assert t["heldout_short"]["rows"] == [["defaults", "colmap", "2", "0.400 ± 0.141", "+2.00 ± 0.00", "150 ± 0", "0.300"]]
