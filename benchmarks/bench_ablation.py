@@ -183,7 +183,7 @@ def ablation_tables(runs: list[dict[str, Any]], names: list[str]) -> dict[str, d
 def plan_runs(root: Path, base: str, source: str, names: list[str], train_seeds: list[int], spread_seeds: list[int],
               seeds: list[Any], finished_only: bool) -> tuple[list[tuple], list[str]]:
     """The runs to make, each ``(row, training seed, scene, config path, label, osn demo arguments)``
-    with its config written under ``ROOT/ablation-configs`` and its directory started from the base
+    with its config written under ``root/ablation-configs`` and its directory started from the base
     run's inputs (:func:`bench_heldout.seed_work`); and, with ``finished_only``, the runs left out
     because their training has not finished (named ``"ROW scene S training seed T"``)."""
     configs = root / "ablation-configs"
