@@ -289,7 +289,9 @@ def tables(runs: list[dict[str, Any]]) -> dict[str, dict]:
             ious = [r["iou"] for r in rs if _measured(r.get("iou"))]
             pooled.append([label, source, str(len(rs)), *cells, f"{min(ious):.3f}" if ious else "-"])
     heads = ["config", "inputs", "seeds", *HEADERS, "worst seed's IoU"]
-    short = [0, 1, 2, 3, 6, 9, 10]  # README's: IoU, best of N's margin, training time, worst seed
+    # README's: the set, best of N's margin, the time and the worst seed.
+    short = [heads.index(c) for c in ("config", "inputs", "seeds", "IoU", "best of N - highest score (dB)",
+                                      "training time (s)", "worst seed's IoU")]
     return {"heldout_pooled": table(heads, pooled),
             "heldout_short": table([heads[i] for i in short], [[r[i] for i in short] for r in pooled]),
             "heldout_per_seed": table(["config", "scene", "inputs", *HEADERS, "note"], per_seed)}
@@ -376,8 +378,8 @@ def main() -> int:
     for seed, err in failed.items():
         for src in sources:
             report({"seed": seed, "source": src, "error": err, "seconds": 0.0})
-    not_finished = []
-    for label in [x for x in args.also.split(",") if x]:
+    not_finished, also = [], [x for x in args.also.split(",") if x]
+    for label in also:
         for seed, src in jobs:
             if (r := finished_figures(args.root, seed, label, src)) is not None:
                 report(r, label)
@@ -387,7 +389,7 @@ def main() -> int:
         print(f"not finished ({len(not_finished)}, --with): " + "; ".join(not_finished), flush=True)
     return finish_parallel(args.out, "heldout", tables(runs),
                            {"split": args.split, "seeds": seeds, "label": args.label, "config": args.config,
-                            "with": [x for x in args.also.split(",") if x], "not_finished": not_finished,
+                            "with": also, "not_finished": not_finished,
                             **({"conditions": args.conditions} if args.conditions else {})},
                            t0, args.jobs, ROOT, runs)
 

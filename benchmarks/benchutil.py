@@ -13,7 +13,7 @@ from typing import Any
 def command_line(script: str | None = None, argv: list[str] | None = None) -> str:
     """``python benchmarks/NAME.py ARGS`` as a shell would need it (an empty argument quoted): the
     process's own command line, or ``script`` with ``argv`` where a ``main(argv)`` was called."""
-    return shlex.join(["python", *([sys.argv[0], *sys.argv[1:]] if argv is None else [script or sys.argv[0], *argv])])
+    return shlex.join(["python", *(sys.argv if argv is None else [script or sys.argv[0], *argv])])
 
 
 def print_command(script: str | None = None, argv: list[str] | None = None) -> None:
