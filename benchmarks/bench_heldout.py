@@ -44,6 +44,7 @@ from typing import Any, Union
 from results_json import table
 
 from benchutil import add_executor_args, finish_parallel, print_command, run_parallel
+from osn.cli.stages import stage_error
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("colmap", "oracle")
@@ -175,29 +176,67 @@ def run_one(seed: Scene, source: str, root: Path, config: str | None, label: str
         time.sleep(30)
     (work / "bench.log").write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:
-        error = (proc.stderr.strip().splitlines() or ["?"])[-1]
-        if (found := no_sample_figures(work, error)) is not None:
+        if (found := empty_set_figures(work)) is not None:
             return {"seed": seed, "source": source, **found, "seconds": time.perf_counter() - t0}
+        error = (proc.stderr.strip().splitlines() or ["?"])[-1]
         return {"seed": seed, "source": source, "error": error, "seconds": time.perf_counter() - t0}
     return {"seed": seed, "source": source, **figures(work), "seconds": time.perf_counter() - t0}
 
 
-def no_sample_figures(work: Path, error: str) -> dict[str, Any] | None:
-    """The figures of a demo work directory whose training finished but whose sampler stopped with
-    ``error`` because its uniform draws found no valid configuration (the learned set is empty or
-    too small for them); None for any other failure.
+def empty_set_figures(work: Path) -> dict[str, Any] | None:
+    """The figures of a demo work directory whose training finished and whose learned set holds
+    no configuration the search finds: a later stage (the sampler, or the export's learned
+    intervals) stopped on ``EmptyValidSet``, read from that stage's record; None for any other
+    failure.
 
-    A result, not a crash: the valid-set figures are the training monitor's last (against the same
-    exact region); with no sample there is no best of N."""
+    A result, not a crash: the valid-set figures are the evaluation's where it ran (on the
+    sampler's best-scoring draws, none of them valid), else the training monitor's last (against
+    the same exact region); with no valid sample there is no best of N."""
     trained = work / ".done" / "train.json"
-    if "accepts none" not in error or not trained.is_file():
+    errors = (stage_error(work, name) for name in ("sample", "export"))
+    error = next((e for e in errors if e is not None and e["type"] == "EmptyValidSet"), None)
+    if error is None or not trained.is_file():
         return None
     t = json.loads(trained.read_text())
-    last = _last_monitor(work / "run" / "metrics.jsonl")
-    return {"iou": last.get("iou", t["summary"]["iou"]), "precision": last.get("precision"), "recall": last.get("recall"),
+    evaluated = work / ".done" / "evaluate.json"
+    if evaluated.is_file():
+        v, where = json.loads(evaluated.read_text())["summary"]["valid_set"], "the evaluation"
+    else:
+        v, where = _last_monitor(work / "run" / "metrics.jsonl"), "the training monitor"
+    return {"iou": v.get("iou", t["summary"]["iou"]), "precision": v.get("precision"), "recall": v.get("recall"),
             "best_minus_highest_db": None, "scale_error": None, "train_psnr": t["summary"]["psnr"],
-            "train_seconds": t["seconds"],
-            "note": "no sample (valid-set figures from the training monitor): " + error.removeprefix("osn: error: ")}
+            "train_seconds": t["seconds"], **limit_figures(work, v), "note": f"no valid configuration (valid-set figures from {where}): {error['message']}"}
+
+
+def limit_figures(work: Path, valid_set: dict[str, Any]) -> dict[str, Any]:
+    """What limits a run's learned set (``heldout_limits``' figures) from its valid-set record:
+    :func:`set_limits`, the objects SfM dropped and the IoU their absence allows."""
+    return {**set_limits(valid_set.get("limits", [])), "dropped": dropped_objects(work),
+            "iou_without_dropped": valid_set.get("iou_without_dropped")}
+
+
+def set_limits(limits: list[dict[str, Any]]) -> dict[str, Any]:
+    """The exact bounds that limit a learned set most (a report's ``valid_set.limits``): the one
+    it cuts most (``largest_miss``: the pair, the share of the region missed there, and the final
+    label pool's rays of that pair, None where the run did not record them) and the one it
+    reaches farthest beyond (``largest_excess``: the same with its volume there in units of the
+    region's); None where no bound is wrong that way."""
+    out: dict[str, Any] = {}
+    for key, share in (("largest_miss", "missed"), ("largest_excess", "excess")):
+        worst = max(limits, key=lambda e: e[share], default=None)
+        out[key] = ([worst["pair"], worst[share], worst.get("pool_rays")]
+                    if worst is not None and worst[share] > 0 else None)
+    return out
+
+
+def dropped_objects(work: Path) -> list[str]:
+    """The objects a demo run's preprocessing dropped (SfM registered none, or it contradicted its
+    masks), by name, from the stage's record. They train nothing and bound nothing; only runs from
+    SfM inputs train without them (the oracle's preprocessing runs SfM as a record only)."""
+    rec, train = work / ".done" / "preprocess.json", work / ".done" / "train.started.json"
+    if not (rec.is_file() and train.is_file()) or json.loads(train.read_text())["options"].get("inputs") != "colmap":
+        return []
+    return [o["name"] for o in json.loads(rec.read_text())["summary"]["objects"] if "error" in o]
 
 
 def finished_figures(root: Path, seed: Scene, label: str, source: str) -> dict[str, Any] | None:
@@ -208,9 +247,7 @@ def finished_figures(root: Path, seed: Scene, label: str, source: str) -> dict[s
     if (work / "report" / "metrics.json").is_file() and (work / "stages.json").is_file():
         found = figures(work)
     else:
-        log = work / "bench.log"
-        lines = log.read_text().strip().splitlines() if log.is_file() else []
-        found = no_sample_figures(work, lines[-1]) if lines else None
+        found = empty_set_figures(work)
     return None if found is None else {"seed": seed, "source": source, **found, "seconds": 0.0}
 
 
@@ -238,9 +275,10 @@ def figures(work: Path) -> dict[str, Any]:
         "scale_error": statistics.fmean(errors) if errors else None,
         "train_psnr": stages["train"]["summary"]["psnr"], "train_seconds": stages["train"]["seconds"],
         "stage_seconds": {k: round(r["seconds"]) for k, r in stages.items()},
+        **limit_figures(work, m["valid_set"]),
         **({} if _measured(m["valid_set"]["iou"]) else
-           {"note": f"IoU not measured: no point of the exact region in the learned scale box "
-                    f"({m['extra'].get('gt_outside_scale_box', '?')} ground truths outside it)"}),
+           {"note": "IoU not measured: " + m["valid_set"].get("not_measured", "no point of the exact region in the learned "
+                    f"scale box ({m['extra'].get('gt_outside_scale_box', '?')} ground truths outside it)")}),
     }
 
 
@@ -292,9 +330,24 @@ def tables(runs: list[dict[str, Any]]) -> dict[str, dict]:
     # README's: the set, best of N's margin, the time and the worst seed.
     short = [heads.index(c) for c in ("config", "inputs", "seeds", "IoU", "best of N - highest score (dB)",
                                       "training time (s)", "worst seed's IoU")]
+    limits = [[r["config"], str(r["seed"]), r["source"], fmt_limit(r.get("largest_miss"), "{:.1%}"),
+               fmt_limit(r.get("largest_excess"), "{:.3g}"), ", ".join(r.get("dropped", [])) or "-",
+               "-" if r.get("iou_without_dropped") is None else f"{r['iou_without_dropped']:.3f}"]
+              for r in sorted(ok, key=order)]
     return {"heldout_pooled": table(heads, pooled),
             "heldout_short": table([heads[i] for i in short], [[r[i] for i in short] for r in pooled]),
-            "heldout_per_seed": table(["config", "scene", "inputs", *HEADERS, "note"], per_seed)}
+            "heldout_per_seed": table(["config", "scene", "inputs", *HEADERS, "note"], per_seed),
+            "heldout_limits": table(["config", "scene", "inputs", "largest miss: bound (share of the region)",
+                                     "largest excess: bound (volume / the region's)", "dropped by SfM",
+                                     "IoU without the dropped objects' bounds"], limits)}
+
+
+def fmt_limit(limit: list | None, fmt: str) -> str:
+    """``pair (share; N label rays)`` of :func:`set_limits`; ``-`` for none (or a run without a report)."""
+    if limit is None:
+        return "-"
+    rays = f"; {limit[2]} label rays" if len(limit) > 2 and limit[2] is not None else ""
+    return f"{limit[0]} ({fmt.format(limit[1])}{rays})"
 
 
 def presets_arg(ap: argparse.ArgumentParser, text: str, split: str) -> list[str]:

@@ -9,3 +9,8 @@ class DatasetError(ValueError):
 
 class ExportFormatError(ValueError):
     """An export directory is malformed, incomplete or of another version (message says which file)."""
+
+
+class EmptyValidSet(ExportFormatError):
+    """The scale network accepts no configuration that a search finds: the learned valid set is
+    empty, or too small for the draws made. A result of training, not a malformed file."""

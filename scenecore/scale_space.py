@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .cameras import scale_about
-from .errors import ExportFormatError
+from .errors import EmptyValidSet, ExportFormatError
 
 ACTIVATIONS = ("relu", "sigmoid", "softplus", "tanh", "identity")
 
@@ -296,7 +296,7 @@ def learned_intervals(
     :data:`MIN_INTERVAL_POINTS` draws are valid (a set of a millionth of the box), also
     :func:`hit_and_run` from them (or from :func:`climb_into_set` when none is), so the box is that
     of the set and not of a few draws. The anchor's interval is [1, 1]. Raises
-    ``ExportFormatError`` when no valid point is found (the network accepts nothing), instead of
+    :class:`~scenecore.errors.EmptyValidSet` when no valid point is found (the network accepts nothing), instead of
     returning an empty or inverted interval.
     """
     K = len(ranges)
@@ -316,7 +316,7 @@ def learned_intervals(
                                                        s[np.argsort(-p, kind="stable")[:64]], 10 * MIN_INTERVAL_POINTS,
                                                        threshold, rng)])
         if not len(inside):
-            raise ExportFormatError(f"the scale network accepts none of {draws} uniform draws, nor a point climbing "
+            raise EmptyValidSet(f"the scale network accepts none of {draws} uniform draws, nor a point climbing "
                                     "from the best of them: no valid configuration")
     sbar = denormalise(inside, ranges[free])
     out[free, 0], out[free, 1] = sbar.min(0), sbar.max(0)
@@ -332,7 +332,7 @@ def sample_valid_configurations(
     Seeded rejection sampling through ``score`` (actual scales ``(N, K)`` -> ``(N,)``, e.g.
     :meth:`ExportData.validity`), batch by batch, so the result depends only on ``seed``; when
     ``max_draws`` draws give too few (a set that fills little of its intervals' box), the rest
-    are drawn by :func:`hit_and_run` from those found. Raises ``ExportFormatError`` when no draw
+    are drawn by :func:`hit_and_run` from those found. Raises ``EmptyValidSet`` when no draw
     is valid.
     """
     rng = np.random.default_rng(seed)
@@ -345,7 +345,7 @@ def sample_valid_configurations(
         kept.append(batch[score(batch) >= threshold])
         found += len(kept[-1])
     if not found:
-        raise ExportFormatError(f"no valid configuration in {drawn} draws inside the learned intervals")
+        raise EmptyValidSet(f"no valid configuration in {drawn} draws inside the learned intervals")
     inside = np.concatenate(kept)[:count]
     if found < count:  # in the intervals' unit cube; ">= threshold" as the draws above
         span = np.where(hi > lo, hi - lo, 1.0)

@@ -351,11 +351,16 @@ def limiting_bounds(region: ValidRegion, samples: SetSamples, learned_uniform: n
     ``missed`` sums to ``1 - recall`` and ``excess`` to the learned set's volume outside the
     region over the region's (``recall / precision - recall``).
 
-    Returns one entry per ordered pair with a finite bound: ``i``, ``j``, ``bound`` (``B_ij``),
-    ``missed``, ``excess``; empty when no region point was drawn (nothing to charge against).
+    Returns one entry per ordered pair with a finite bound of which at least one object's scale
+    varies over the samples: ``i``, ``j``, ``bound`` (``B_ij``), ``missed``, ``excess``; empty
+    when no region point was drawn (nothing to charge against). A pair of objects both held at
+    one scale (the anchor, an object a run does not model) has the same slack at every point, so
+    it limits nothing; near 0 (an object standing on the anchor) it would otherwise be every
+    miss's nearest bound.
     """
     B = region.ratio_bounds
-    pairs = np.argwhere(np.isfinite(B) & ~np.eye(region.num_objects, dtype=bool))
+    varies = samples.uniform.min(0) < samples.uniform.max(0)
+    pairs = np.argwhere(np.isfinite(B) & ~np.eye(region.num_objects, dtype=bool) & (varies[:, None] | varies[None, :]))
     exact_points = int(np.count_nonzero(samples.exact))
     if not exact_points or not len(pairs):
         return []

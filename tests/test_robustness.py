@@ -311,6 +311,12 @@ def broken_runs(trained: Path, tiny_dataset: Path, tmp_path_factory) -> dict[str
     jobs["evaluate_corrupt_test_view"] = (("osn", "evaluate", trained, "--data", data, "--out", base / "report", *EVAL_ARGS),
                                           view, "cannot read the image")
 
+    run = base / "evaluate_malformed_label_pool"  # a shared run's pool record is read by the evaluation
+    shutil.copytree(trained, run)
+    (run / "label_pool.json").write_text('{"pairs": [[0, 1, "many"]], "minority": []}')
+    jobs["evaluate_malformed_label_pool"] = (("osn", "evaluate", run, "--data", tiny_dataset, "--out", base / "report_pool",
+                                              *EVAL_ARGS), run / "label_pool.json", "not a label pool record")
+
     jobs["train_onto_existing_run"] = (("osn", "train", "--data", tiny_dataset, "--out", trained), trained, "already holds a run; pass --resume")
 
     other = base / "not_an_export"
@@ -333,7 +339,8 @@ class _RunsCode:
 
 
 RUN_CASES = ["inputs_version", "inputs_missing_array", "checkpoint_version", "checkpoint_truncated", "resume_truncated_checkpoint",
-             "checkpoint_other_layout", "evaluate_corrupt_test_view", "train_onto_existing_run", "export_onto_other_directory",
+             "checkpoint_other_layout", "evaluate_corrupt_test_view", "evaluate_malformed_label_pool", "train_onto_existing_run",
+             "export_onto_other_directory",
              *(f"checkpoint_runs_code_{c}" for c in ("sample", "export", "evaluate", "resume"))]
 
 
@@ -349,6 +356,8 @@ def test_foreign_or_damaged_run_directories_give_one_line(broken_runs, case: str
         assert not (named.parents[1] / f"export_{cmd}").exists() and not (named.parents[1] / f"report_{cmd}").exists()
     if case == "export_onto_other_directory":
         assert sorted(p.name for p in named.iterdir()) == ["keep.txt"]
+    if case == "evaluate_malformed_label_pool":
+        assert not (named.parents[1] / "report_pool" / "metrics.json").exists()
 
 
 def test_a_first_version_checkpoint_still_loads(trained: Path, tmp_path: Path) -> None:

@@ -138,10 +138,26 @@ def _run_stages_locked(stages: list[Stage], work: Path, echo: Callable[[str], No
     return records
 
 
-def _record_started(done_dir: Path, name: str, options: dict[str, Any], seconds: float) -> None:
-    """A started stage's record (``.started.json``): its options, and the time spent on it so far,
-    which a resumed run adds its own to."""
-    atomic_write_json(done_dir / f"{name}.started.json", {"options": options, "seconds": seconds})
+def _record_started(done_dir: Path, name: str, options: dict[str, Any], seconds: float,
+                    error: BaseException | None = None) -> None:
+    """A started stage's record (``.started.json``): its options, the time spent on it so far,
+    which a resumed run adds its own to, and, where it stopped on an exception, which one
+    (``error``: ``type`` and ``message``), so a caller tells an outcome of the method (a sampler
+    that found no valid configuration) from a crash without reading a log."""
+    rec: dict[str, Any] = {"options": options, "seconds": seconds}
+    if error is not None:
+        rec["error"] = {"type": type(error).__name__, "message": str(error)}
+    atomic_write_json(done_dir / f"{name}.started.json", rec)
+
+
+def stage_error(workdir: str | Path, name: str) -> dict[str, str] | None:
+    """The exception stage ``name`` of ``workdir`` last stopped on (``type``, ``message``); None
+    where it finished, is under way or never started."""
+    done = Path(workdir) / ".done"
+    started = done / f"{name}.started.json"
+    if (done / f"{name}.json").exists() or not started.is_file():
+        return None
+    return json.loads(started.read_text()).get("error")
 
 
 def _run_one(st: Stage, i: int, n: int, done_dir: Path, records: dict[str, dict], running: dict[str, _Running],
@@ -173,8 +189,8 @@ def _run_one(st: Stage, i: int, n: int, done_dir: Path, records: dict[str, dict]
     t0 = time.perf_counter()
     try:
         result = st.run()
-    except BaseException:  # keep the time spent, so a resumed stage reports its whole cost
-        _record_started(done_dir, st.name, options, spent + time.perf_counter() - t0)
+    except BaseException as e:  # keep the time spent, so a resumed stage reports its whole cost
+        _record_started(done_dir, st.name, options, spent + time.perf_counter() - t0, e)
         raise
     if st.background:
         running[st.name] = _Running(result, i, options, spent, t0)

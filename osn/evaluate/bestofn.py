@@ -44,6 +44,7 @@ from osn.evaluate.valid_set import ground_truth_outside_box, valid_set_accuracy,
 from osn.model.run import TrainedRun
 from osn.preprocess.inputs import InputsError
 from osn.sample.configurations import Samples
+from osn.train.labels import read_pool_record
 
 
 #: The table row of the fields rendered at the ground truths' own scales (a reference).
@@ -160,6 +161,7 @@ def evaluate(
     if problem:  # checked before any rendering: every metric below needs it
         raise InputsError(f"{dataset_root}: cannot evaluate against ground truth: {problem}")
     verified = provenance.verification(dataset_root, D.load_scene(dataset_root), unverified)
+    read_pool_record(run.path)  # a malformed record of the run's label pool stops here, before the search
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     # Configurations read and masked in forked processes, one per core torch would use (numpy only).
@@ -210,7 +212,7 @@ def evaluate(
     # it needs were checked above (ground_truth_problem).
     actual = actual_scales(run.inputs, samples.sbar[match])
     scale_err = relative_scale_errors(actual, truth.scales, [o.id for o in run.inputs.objects], truth.scene.anchor_id)
-    valid = valid_set_accuracy(run, region, cfg.valid_points, cfg.seed)
+    valid = valid_set_accuracy(run, region, cfg.valid_points, cfg.seed, {o.id: o.name for o in truth.scene.objects})
     curves = evaluation_curves(run, samples, truth, res.matrix, cand, cfg.levels)
     curves["validity_profile"] = widest_object_profile(run, region, truth.scales)
     extra = {**_run_extra(run, samples, truth, approx_mean, cand, match), **true_extra,

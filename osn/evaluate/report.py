@@ -121,6 +121,8 @@ def summary_lines(table: dict[str, dict[str, list[float]]], valid_set: dict[str,
     """The console summary of an evaluation: the results table, valid-set accuracy, scale error."""
     v = valid_set
     line = f"valid-set IoU {v['iou']:.3f} (precision {v['precision']:.3f}, recall {v['recall']:.3f})"
+    if "iou_without_dropped" in v:
+        line += f"; {v['iou_without_dropped']:.3f} at best without the dropped objects' bounds"
     if scale_error:
         line += f"; relative scale error of matches {float(np.mean(scale_error)):.3f}"
     return [results_table(table), line]
@@ -128,6 +130,8 @@ def summary_lines(table: dict[str, dict[str, list[float]]], valid_set: dict[str,
 
 def _region_note(v: dict[str, float]) -> str:
     """``: 0.0139 of the box, 5421 points`` when the accuracy says how it was measured."""
+    if "not_measured" in v:
+        return f": not measured, {v['not_measured']}"
     if "exact_fraction" not in v:
         return ""
     return f": {v['exact_fraction']:.3g} of the box, learned {v['learned_fraction']:.3g}, {v['exact_points']} region points drawn"
@@ -228,15 +232,23 @@ def limits_lines(limits: list[dict[str, Any]], rows: int = 8) -> list[str]:
     lines = [
         "Where the learned valid set departs from the exact region, per pair bound `s_i / s_j < B_ij`: the share of the "
         "region it misses nearest that bound (too tight there) and its volume beyond that bound in units of the region's "
-        "(too loose); missed shares add up to 1 - recall.",
+        "(too loose); missed shares add up to 1 - recall. Label rays: the final label pool's rays that could set the "
+        "bound (0: nothing in training bounds the pair; a minority: left out by `pair_minority`).",
         "",
-        "| bound | B_ij | missed | beyond |",
-        "|---|---|---|---|",
+        "| bound | B_ij | missed | beyond | label rays |",
+        "|---|---|---|---|---|",
     ]
-    lines += [f"| {e['pair']} | {e['bound']:.4f} | {e['missed']:.3f} | {e['excess']:.3f} |" for e in shown[:rows]]
+    lines += [f"| {e['pair']} | {e['bound']:.4f} | {e['missed']:.3f} | {e['excess']:.3f} | {_pool_cell(e)} |" for e in shown[:rows]]
     if len(shown) > rows:
-        lines.append(f"| ({len(shown) - rows} more in metrics.json) | | | |")
+        lines.append(f"| ({len(shown) - rows} more in metrics.json) | | | | |")
     return lines + [""]
+
+
+def _pool_cell(e: dict[str, Any]) -> str:
+    """A limits entry's label rays: ``12``, ``3 (a minority, left out)``, or ``-`` without the record."""
+    if "pool_rays" not in e:
+        return "-"
+    return f"{e['pool_rays']} (a minority, left out)" if e["pool_minority"] else str(e["pool_rays"])
 
 
 #: The file that marks a report directory written by ``osn evaluate`` (replaced by the next one).
@@ -301,6 +313,8 @@ def _write_report_files(res: EvalResult, out: Path, run_dir: Path, command: str)
         "| figure | value |",
         "|---|---|",
         f"| valid-set IoU / precision / recall (exact region{_region_note(v)}) | {v['iou']:.3f} / {v['precision']:.3f} / {v['recall']:.3f} |",
+        *([f"| valid-set IoU of the exact region without the bounds of the objects preprocessing dropped "
+           f"(the best these inputs allow) | {v['iou_without_dropped']:.3f} |"] if "iou_without_dropped" in v else []),
         f"| relative scale error of matched samples | {np.mean(se):.3f} ± {np.std(se):.3f} |" if se else "| relative scale error | n/a (no ground-truth units) |",
         f"| training time, and training PSNR / valid-set IoU reached by then | {train_s:.0f} s: {_reached(train_log)} |",
         f"| evaluation time (ground truth, layered pre-selection, exact scoring of the pre-selected, baselines) | "

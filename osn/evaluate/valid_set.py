@@ -10,11 +10,13 @@ from scenecore.validity import ValidRegion, limiting_bounds, set_accuracy, set_s
 
 from osn.model.run import TrainedRun
 from osn.model.scale_net import VALID_THRESHOLD
+from osn.train.labels import read_pool_record
 from osn.preprocess.inputs import normalise_scales
 from osn.evaluate.units import actual_scales, dataset_box, free_normalised, normalised, true_scales
 
 
-def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_000, seed: int = 0) -> dict[str, Any]:
+def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_000, seed: int = 0,
+                       names: dict[int, str] | None = None) -> dict[str, Any]:
     """Precision / recall / IoU of the learned valid set (score > VALID_THRESHOLD) against the exact region,
     and which of the region's pair bounds it gets wrong (``limits``).
 
@@ -29,19 +31,54 @@ def valid_set_accuracy(run: TrainedRun, region: ValidRegion, points: int = 200_0
     of the region, named ``"i < j"`` by object name, the share of the region the learned set misses
     at that bound (``missed``: cut too tight) and its volume beyond it in units of the region's
     (``excess``: reaches too far); the pairs with the largest shares are what to look at first.
+    ``names``: the dataset's object names by id, for the objects the run's inputs leave out.
+    Where the run recorded its final label pool, each entry also has ``pool_rays`` (the pool's
+    rays of that ordered pair: 0 means nothing in training could set the bound) and
+    ``pool_minority`` (``pair_minority`` left them out).
+
+    A scene of one object is its own exact set (1.0); a run whose inputs kept only the anchor of
+    several objects learned no scale: NaN, with ``not_measured`` saying why (not a 1.0 that looks
+    measured).
+
+    Where the inputs leave objects out (preprocessing dropped them), ``iou_without_dropped`` is
+    the IoU of the region with their bounds removed: what a method that learns every other bound
+    exactly scores from these inputs, since nothing in them bounds an object they do not hold.
     """
     K = run.inputs.num_objects
+    if K == 1 and region.num_objects > 1:  # every object but the anchor dropped: no scale was learned
+        nan = float("nan")
+        return {"precision": nan, "recall": nan, "iou": nan, "points": 0, "limits": [],
+                "not_measured": "preprocessing dropped every object but the anchor; no scale was learned"}
     if K == 1:
         return {"precision": 1.0, "recall": 1.0, "iou": 1.0, "points": 0, "limits": []}
     pts = set_samples(region, dataset_box(run.inputs, run.ranges, region.num_objects), points, seed)
     learned = [run.scores(free_normalised(run.inputs, run.ranges, x)) > VALID_THRESHOLD for x in pts.strata]
-    names = {o.id: o.name for o in run.inputs.objects}
+    names = {**(names or {}), **{o.id: o.name for o in run.inputs.objects}}
 
     def name(i: int) -> str:
-        return names.get(i, f"object {i}")  # an object the inputs leave out (held at scale 1)
+        return names.get(i, f"object {i}")  # an object the inputs leave out is held at scale 1
 
-    limits = [{"pair": f"{name(e['i'])} < {name(e['j'])}", **e} for e in limiting_bounds(region, pts, *learned)]
-    return {**set_accuracy(pts, *learned), "points": 3 * points, "limits": limits}
+    pool = read_pool_record(run.path)
+    limits = [{"pair": f"{name(e['i'])} < {name(e['j'])}", **e, **_pool_rays(pool, e["i"], e["j"])}
+              for e in limiting_bounds(region, pts, *learned)]
+    out = {**set_accuracy(pts, *learned), "points": 3 * points, "limits": limits}
+    dropped = sorted(set(range(region.num_objects)) - {o.id for o in run.inputs.objects})
+    if dropped:
+        bounds = region.ratio_bounds.copy()
+        bounds[dropped, :] = bounds[:, dropped] = np.inf
+        blind = ValidRegion.from_bounds(bounds, region.anchor)
+        out["iou_without_dropped"] = set_accuracy(pts, *(np.asarray(blind.contains(x), dtype=bool) for x in pts.strata))["iou"]
+    return out
+
+
+def _pool_rays(pool: dict[tuple[int, int], tuple[int, bool]] | None, i: int, j: int) -> dict[str, Any]:
+    """``pool_rays``: the final label pool's rays that could set bound ``i < j`` (0: nothing in
+    the pool bounds the pair), ``pool_minority``: whether ``pair_minority`` left them out; {} for
+    a run without the record."""
+    if pool is None:
+        return {}
+    rays, minority = pool.get((i, j), (0, False))
+    return {"pool_rays": rays, "pool_minority": minority}
 
 
 def _exactly_valid(run: TrainedRun, region, actual: np.ndarray) -> np.ndarray:

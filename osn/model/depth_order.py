@@ -18,7 +18,7 @@ Everything is float64 log-depth, so depth ratios over any finite range stay exac
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -31,11 +31,13 @@ class OrderConstraints:
         pairs: ``(i, j)`` = (labelled object, another object covering the ray).
         thresholds: per pair the sorted ``log d_j - log d_i`` (float64) of its rays.
         rays: number of rays the constraints come from.
+        dropped: the pairs :func:`minority_pairs` left out, with their ray counts.
     """
 
     pairs: list[tuple[int, int]]
     thresholds: list[torch.Tensor]
     rays: int
+    dropped: dict[tuple[int, int], int] = field(default_factory=dict)
 
     @property
     def count(self) -> int:
@@ -90,7 +92,8 @@ def order_constraints(depth: torch.Tensor, covered: torch.Tensor, gt: torch.Tens
                 found[(i, j)] = torch.sort(logd[m, j] - logd[m, i]).values.contiguous()
     drop = minority_pairs({p: len(t) for p, t in found.items()}, minority)
     pairs = [p for p in found if p not in drop]
-    return OrderConstraints(pairs, [found[p] for p in pairs], int((own & (covered.sum(1) >= 2)).sum()))
+    return OrderConstraints(pairs, [found[p] for p in pairs], int((own & (covered.sum(1) >= 2)).sum()),
+                            {p: len(found[p]) for p in found if p in drop})
 
 
 def minority_pairs(counts: dict[tuple[int, int], int], minority: float) -> set[tuple[int, int]]:

@@ -10,12 +10,16 @@ of the phase's steps.
 
 from __future__ import annotations
 
+import json
 import logging
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
+from scenecore import dataset as D
 from scenecore.cameras import project_pixels
+from scenecore.errors import DatasetError
 from osn.model.fields import Field
 from osn.model.depth_order import order_constraints
 from osn.model.volume import SKIP_OCCLUDED, render_by_hits
@@ -189,6 +193,45 @@ def build_label_pool(st: SceneTensors, fields: list[Field], cfg: TrainConfig, it
             "no depth order (fields not yet opaque on two objects at once)", iteration, len(flat),
         )
     return pool
+
+
+#: The final scale phase's label pool, per ordered pair, in the run directory (:func:`pool_record`).
+POOL_FILE = "label_pool.json"
+#: Bound on its size when read: three integers per ordered pair of a few hundred objects.
+MAX_POOL_BYTES = 8 << 20
+
+
+def pool_record(pool: dict, ids: list[int]) -> dict:
+    """What the final label pool holds per ordered pair, by dataset object id (``ids``: per
+    object position): ``pairs``, ``[i, j, rays]`` with ``i`` labelled and ``j`` covering the ray
+    too ("``i`` in front of ``j``", as the exact region's bound ``s_i / s_j < B_ij``), and
+    ``minority``, the pairs ``pair_minority`` left out, with their rays. Read by the evaluation,
+    which names for each exact bound the rays that could set it (none: nothing in the pool bounds
+    that pair)."""
+    c = pool["constraints"]
+    return {"pairs": [[ids[i], ids[j], len(t)] for (i, j), t in zip(c.pairs, c.thresholds)],
+            "minority": [[ids[i], ids[j], n] for (i, j), n in c.dropped.items()]}
+
+
+def read_pool_record(run_dir: Path) -> dict[tuple[int, int], tuple[int, bool]] | None:
+    """``(i, j) -> (rays, left out as a minority)`` of a run's :data:`POOL_FILE` (dataset ids);
+    None where the run has none (trained before it was written, or a single object). A shared
+    run is untrusted input: the file is read up to a bound, and anything but lists of three
+    non-negative integers is ``DatasetError`` naming it."""
+    path = Path(run_dir) / POOL_FILE
+    if not path.exists():
+        return None
+    try:
+        rec = json.loads(D.read_regular(path, MAX_POOL_BYTES))
+        out = {}
+        for key, minority in (("pairs", False), ("minority", True)):
+            for i, j, n in rec[key]:
+                if not all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in (i, j, n)):
+                    raise ValueError(f"{[i, j, n]} is not three non-negative integers")
+                out[(i, j)] = (n, minority)
+    except (ValueError, TypeError, KeyError) as e:  # JSONDecodeError is a ValueError
+        raise DatasetError(f"{path}: not a label pool record ({e})") from None
+    return out
 
 
 def near_positives(positives: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:

@@ -25,7 +25,8 @@ and ``resumed_on`` for resumes on another kind of processor or torch build), ``c
 ``--resume`` reproduces an uninterrupted run bit for bit on the same kind of CPU; CUDA's atomic adds make runs agree only up to rounding),
 ``metrics.jsonl`` (one JSON line per evaluation: wall time, iteration, phase, losses, training
 PSNR and, when the caller gives the exact region, the valid-set precision / recall / IoU and the
-relative scale-interval error).
+relative scale-interval error), ``label_pool.json`` (at the end: the final scale phase's rays per
+object pair, :func:`osn.train.labels.pool_record`).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from osn.model.scale_net import FIELD_STEP_THRESHOLD, NonFiniteScores
 from osn.train.checkpoint import TrainingDiverged, append_metrics, save_checkpoint, truncate_metrics
 from osn.train.config import TrainConfig
 from osn.train.environment import describe, environment, same_kernels
+from osn.train.labels import POOL_FILE, pool_record
 from osn.train.monitor import TrainingMonitor
 from osn.train.schedule import Phase
 from osn.train.tensors import pick_device
@@ -196,6 +198,36 @@ def train(
         monitor = TrainingMonitor(trainer, region)
         stop = min(trainer.total, max_iterations) if max_iterations is not None else trainer.total
         _iterate(trainer, monitor, out, stop, progress)
+        if trainer.iteration == trainer.total:
+            _write_pool_record(trainer, out, inputs)
     if trainer.fallbacks:
         log.warning("%d field steps used a fallback scale vector (no candidate above %.2f)", trainer.fallbacks, FIELD_STEP_THRESHOLD)
     return out
+
+
+def _write_pool_record(trainer: Trainer, out: Path, inputs: SceneInputs) -> bool:
+    """``out/label_pool.json`` from a finished trainer's final scale phase (its pool rebuilt, as a
+    resumed phase rebuilds it: the same fields give the same pool); False without scale phases."""
+    final = trainer.schedule[-1] if trainer.schedule else None
+    if final is None or final.name != "scale":
+        return False
+    trainer.ensure_cache(final)
+    D.atomic_write_json(out / POOL_FILE, pool_record(trainer.cache, [o.id for o in inputs.objects]))
+    return True
+
+
+def record_final_pool(run_dir: str | Path) -> bool:
+    """Write the ``label_pool.json`` of a finished run trained before training wrote it, from its
+    checkpoint and inputs; False for a run without scale phases (one object). Raises
+    ``ValueError`` naming the run when it has not finished training."""
+    out = Path(run_dir)
+    with output_lock(out):
+        cfg = TrainConfig.from_yaml(out / "config.yaml", run_config=True)
+        inputs = load_inputs(out / "inputs")
+        trainer = Trainer(inputs, cfg, pick_device(cfg.device))
+        trainer.load_state_dict(read_checkpoint(out / "checkpoint.pt", "cpu"))
+        if trainer.iteration != trainer.total:
+            raise ValueError(f"{out}: training stopped at iteration {trainer.iteration} of {trainer.total}; "
+                             "its final label pool does not exist yet")
+        return _write_pool_record(trainer, out, inputs)
+

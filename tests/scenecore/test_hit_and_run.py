@@ -71,9 +71,9 @@ def test_learned_intervals_of_a_tiny_set_are_its_box() -> None:
     assert iv[0].tolist() == [1.0, 1.0]
     assert iv[1, 0] == pytest.approx(1.0 + a, abs=2e-4) and iv[1, 1] == pytest.approx(1.0 + b, abs=2e-4)
     assert iv[2, 0] < 1.01 and iv[2, 1] > 1.99 and iv[3, 0] < 1.01 and iv[3, 1] > 1.99
-    from scenecore.errors import ExportFormatError
+    from scenecore.errors import EmptyValidSet
 
-    with pytest.raises(ExportFormatError, match="accepts none of 2000 uniform draws, nor a point climbing"):
+    with pytest.raises(EmptyValidSet, match="accepts none of 2000 uniform draws, nor a point climbing"):
         learned_intervals([(w1, b1), (w2, np.array([-1e9]))], ranges, 0, draws=2000)
 
 
@@ -81,7 +81,7 @@ def test_configurations_inside_intervals_are_drawn_even_where_the_set_fills_litt
     """The add-on's sampler: a valid set that is a thin diagonal band of its intervals' box (0.4%
     of it) gives a few of 4096 draws; the rest come from hit-and-run, all valid, spread along the
     whole band; a network that accepts nothing is one error."""
-    from scenecore.errors import ExportFormatError
+    from scenecore.errors import EmptyValidSet
     from scenecore.scale_space import sample_valid_configurations
 
     def score(s: np.ndarray) -> np.ndarray:
@@ -91,5 +91,5 @@ def test_configurations_inside_intervals_are_drawn_even_where_the_set_fills_litt
     out = sample_valid_configurations(score, intervals, 0.5, 500, seed=0, max_draws=4096)
     assert out.shape == (500, 3) and (score(out) == 1).all() and (out[:, 0] == 1.0).all()
     assert stats.kstest(out[:, 1] - 1.0, "uniform").pvalue > 1e-3
-    with pytest.raises(ExportFormatError, match="no valid configuration in 4096 draws"):
+    with pytest.raises(EmptyValidSet, match="no valid configuration in 4096 draws"):
         sample_valid_configurations(lambda s: np.zeros(len(s)), intervals, 0.5, 5, seed=0, max_draws=4096)

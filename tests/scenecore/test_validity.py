@@ -165,6 +165,27 @@ def test_limiting_bounds_charge_misses_and_excess_to_the_pair_that_is_off():
     assert limiting_bounds(region, far, *(x[:, 0] > 0 for x in far.strata)) == []
 
 
+def test_limiting_bounds_leave_out_pairs_whose_scales_are_all_held():
+    """An object a run does not model is held at scale 1 like the anchor; where it stands on the
+    anchor (``s_3 < 1.0001``) its slack is 1e-4 at every point, which made it every miss's nearest
+    bound. The misses are the tight bound's."""
+    from scenecore.validity import limiting_bounds, set_accuracy, set_samples
+
+    B = np.full((4, 4), np.inf)
+    B[1, 0], B[2, 0], B[2, 1], B[3, 0] = 1.0, 2.0, 1.5, 1.0001
+    region = ValidRegion.from_bounds(B)
+    pts = set_samples(region, np.array([[1.0, 1.0], [0.0, 3.0], [0.0, 3.0], [1.0, 1.0]]), 20_000, seed=1)
+
+    def learned(s):
+        return (s[:, 1] < 1.0) & (s[:, 2] < 1.35 * s[:, 1])
+
+    lu, li, ln = (learned(x) for x in pts.strata)
+    lim = {(e["i"], e["j"]): e for e in limiting_bounds(region, pts, lu, li, ln)}
+    assert (3, 0) not in lim and set(lim) == {(1, 0), (2, 0), (2, 1)}
+    assert sum(e["missed"] for e in lim.values()) == pytest.approx(1.0 - set_accuracy(pts, lu, li, ln)["recall"], rel=1e-9)
+    assert lim[(2, 1)]["missed"] > 0.8 * sum(e["missed"] for e in lim.values())
+
+
 def test_near_stratum_measures_a_set_that_reaches_just_past_the_region():
     """Where learned sets err, a few per cent past a bound, the uniform points of a large box are
     too sparse: the near stratum measures that excess. A region of 1% of the box [0, 10]^2 and a set

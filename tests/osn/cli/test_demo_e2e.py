@@ -52,6 +52,7 @@ def test_outputs_are_sensible(demo):
     assert sum(e["missed"] for e in limits) == pytest.approx(1.0 - m["valid_set"]["recall"], abs=1e-9)
     worst = max(limits, key=lambda e: e["missed"] + e["excess"])
     assert f"| {worst['pair']} | {worst['bound']:.4f} |" in (demo / "report" / "report.md").read_text()
+    assert worst["pool_rays"] >= 0 and (demo / "run" / "label_pool.json").is_file()  # the final pool's rays of that bound
     # The layered search (quantised scales, per-object layers) ranks like exact renders: it picks
     # the exact best sample for most ground truths, and its PSNR of the match is close to the
     # exact one (a broken search would pick among 60 samples at random).
@@ -176,3 +177,7 @@ def test_the_heldout_benchmark_reads_a_finished_demo_without_running_it(demo, tm
     t = tables([{**r, "config": "default"}, {**r, "config": "paper"}])
     assert [row[:3] for row in t["heldout_pooled"]["rows"]] == [["default", "oracle", "1"], ["paper", "oracle", "1"]]
     assert [row[:3] for row in t["heldout_per_seed"]["rows"]] == [["default", "0", "oracle"], ["paper", "0", "oracle"]]
+    # What limits the set, from the report's bounds: the one cut most, and no dropped object (oracle inputs).
+    worst = max(m["valid_set"]["limits"], key=lambda e: e["missed"])
+    assert t["heldout_limits"]["rows"][0][3] == f"{worst['pair']} ({worst['missed']:.1%}; {worst['pool_rays']} label rays)"
+    assert r["dropped"] == []

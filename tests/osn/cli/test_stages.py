@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from scenecore.cli import UserError
-from osn.cli.stages import BackgroundCommand, Stage, run_stages
+from osn.cli.stages import BackgroundCommand, Stage, run_stages, stage_error
 
 
 def test_interrupted_stage_resumes_with_its_time_and_refuses_other_options(tmp_path: Path) -> None:
@@ -33,6 +33,7 @@ def test_interrupted_stage_resumes_with_its_time_and_refuses_other_options(tmp_p
     started = json.loads((tmp_path / ".done" / "s.started.json").read_text())
     assert started["options"] == {"n": 1} and started["seconds"] >= 0.2
     assert not (tmp_path / ".done" / "s.json").exists()
+    assert stage_error(tmp_path, "s") == {"type": "KeyboardInterrupt", "message": ""}
 
     with pytest.raises(UserError, match=r"stage 's' was run with other options \(n 1 -> 2\)"):
         run_stages([Stage("s", "other n", quick, {"n": 2})], tmp_path, lines.append)
@@ -43,6 +44,23 @@ def test_interrupted_stage_resumes_with_its_time_and_refuses_other_options(tmp_p
     again = run_stages([Stage("s", "third", quick, {"n": 1})], tmp_path, lines.append)["s"]
     assert again == rec and calls == ["a", "b"] and "already done" in lines[-1]
     assert json.loads((tmp_path / "stages.json").read_text())["s"]["seconds"] == rec["seconds"]
+    assert stage_error(tmp_path, "s") is None and stage_error(tmp_path, "never") is None
+
+
+def test_a_stage_that_fails_records_which_exception_until_it_succeeds(tmp_path: Path) -> None:
+    """The record a caller reads instead of the log: the exception's type and message, gone once
+    the stage finishes."""
+    from scenecore.errors import EmptyValidSet
+
+    def empty() -> dict:
+        raise EmptyValidSet("the scale network accepts none of 10 uniform draws")
+
+    with pytest.raises(EmptyValidSet):
+        run_stages([Stage("sample", "draw", empty)], tmp_path)
+    assert stage_error(tmp_path, "sample") == {"type": "EmptyValidSet",
+                                               "message": "the scale network accepts none of 10 uniform draws"}
+    run_stages([Stage("sample", "draw", dict)], tmp_path)
+    assert stage_error(tmp_path, "sample") is None
 
 
 def _python(code: str) -> list[str]:

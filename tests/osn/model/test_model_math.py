@@ -555,8 +555,9 @@ def test_minority_pairs_are_dropped_against_their_opposite_pair() -> None:
     gt = torch.tensor([1] * 40 + [2] * 3)
     kept = order_constraints(depth, covered, gt, minority=0.2)
     assert kept.pairs == [(1, 2)] and kept.rays == R  # all contested, the minority pair left out
+    assert kept.dropped == {(2, 1): 3}  # and recorded, with its rays
     both = order_constraints(depth, covered, gt)
-    assert both.pairs == [(1, 2), (2, 1)]
+    assert both.pairs == [(1, 2), (2, 1)] and both.dropped == {}
     # With the bleed the equal-scale configuration (in every object's unit) violates its 3 rays;
     # without it the only constraint left is the chair staying in front (sbar_1 / sbar_2 < 2).
     sbar = torch.tensor([[1.0, 1.0, 1.0], [1.0, 3.0, 1.0]], dtype=torch.float64)
