@@ -56,6 +56,7 @@ _RULES: dict[str, Rule] = {
     "w_alone": number(0.0),
     "w_distortion": number(0.0),
     "w_hidden_smooth": number(0.0),
+    "w_planar": number(0.0),
     "w_edge": _auto_or(number(0.0)),
     "depth_robust": _auto_or(number(0.0)),
     "final_label_trim": number(0.0, 1.0),
@@ -163,6 +164,12 @@ class TrainConfig:
     curvature on :data:`osn.train.trainer.HIDDEN_STRIPS` strips per step across pixels that
     objects hide it on (``osn.train.losses.disparity_curvature``): zero on any plane, so a floor
     continues behind what stands on it. Unit: loss weight. Neutral: 0 (term off)."""
+    w_planar: float = 1.0
+    """addition (experiments/2026-12-01-anchor-planes.md): Weight of the anchor's depth targets from the
+    planes its sparse depths of every frame support (``osn.train.planar``), on every pixel whose
+    ray meets one inside its points' hull, in the anchor's stage-1 objective (so in every field step
+    through ``w_alone``): a floor SfM found few points on is held where its plane is, also behind
+    the objects standing on it. Unit: loss weight (as the sparse depths' 1). Neutral: 0 (no targets)."""
     w_alone: float = 1.0
     """addition (experiments/2026-11-24-what-limited-valid-set-iou.md,
     experiments/2026-11-25-valid-set-scene-suite.md): Weight of every object's stage-1 objective

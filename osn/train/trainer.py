@@ -29,6 +29,7 @@ from osn.train.auto import (anchor_plane_size, checkpoint_anchor_guide_samples, 
 from osn.train.config import TrainConfig
 from osn.train.labels import build_label_pool, near_positives
 from osn.train.losses import disparity_curvature, edge_excess, sparse_depth_loss
+from osn.train.planar import planar_depths
 from osn.train.schedule import Phase, build_schedule
 from osn.train.tensors import SceneTensors
 
@@ -107,6 +108,13 @@ class Trainer:
         self.free = self._free_pixels()
         self.edges = self.st.edge_pairs() if self.w_edge > 0 else None
         self.hidden_strips = self.st.hidden_anchor_strips(HIDDEN_STRIP_LENGTH) if cfg.w_hidden_smooth > 0 else None
+        # The anchor's depth targets from its planes (flat pixel indices, depths); None when off.
+        self.planar = planar_depths(inputs, cfg.seed) if cfg.w_planar > 0 else None
+        self.planar_flat = torch.from_numpy(self.planar.flat).to(device) if self.planar else None
+        self.planar_depth = torch.from_numpy(self.planar.depth).to(device) if self.planar else None
+        if self.planar is not None:
+            log.info("the anchor's planes: %d (points supporting each: %s), depth targets on %d pixels",
+                     len(self.planar.planes), [p.points for p in self.planar.planes], len(self.planar.depth))
         self._make_field_opt()
 
     # ---- optimisers and state ------------------------------------------------------------
@@ -254,10 +262,21 @@ class Trainer:
                 d_gt = st.sp_depth[sp]
             else:
                 d_gt = torch.zeros(0, device=self.device)
+            n_sparse = len(d_gt)
+            planar = k == st.anchor and self.planar_depth is not None and len(self.planar_depth) > 0
+            if planar:
+                pl = self._randint(len(self.planar_depth), cfg.depth_rays)
+                frames = torch.cat([frames, self.planar_flat[pl] // (st.H * st.W)])
+                p = torch.cat([p, self.planar_flat[pl] % (st.H * st.W)])
             rays = st.object_rays(self.fields, frames, one.expand(st.K), [k])
             out = render(rays, st.dirs[p], cfg.samples, self.gen, skip_occluded=SKIP_OCCLUDED, with_distortion=cfg.w_distortion > 0)
-            l_rgb = F.mse_loss(out.rgb, st.images[frames, p])
-            l_depth = sparse_depth_loss(out.depth[n_rgb:], d_gt, self.depth_robust)
+            own = n_rgb + n_sparse  # rays on the object's own pixels; the planar ones may lie behind others
+            l_rgb = F.mse_loss(out.rgb[:own], st.images[frames[:own], p[:own]])
+            l_depth = sparse_depth_loss(out.depth[n_rgb:own], d_gt, self.depth_robust)
+            if planar:
+                l_planar = sparse_depth_loss(out.depth[own:], self.planar_depth[pl], self.depth_robust)
+                total = total + cfg.w_planar * l_planar
+                losses["planar"] = l_planar.item()
             # Every pixel of the object's mask is hit by it: opacity 1. Without this a field can
             # stay semi-transparent and the depth loss (on sum_i w_i t_i, which a transparent
             # ray shortens) then pushes its surfaces behind the true ones.

@@ -28,7 +28,7 @@ PAPER_GPU = REPO / "configs" / "osn-paper-gpu.yaml"
 #: test_every_addition_is_neutral_in_the_paper_configs until it is listed here.
 NEUTRAL = {
     "final_scale_iters": 0, "anchor_guide_samples": 0, "depth_robust": 0.0, "w_opacity": 0.0, "w_free": 0.0,
-    "w_distortion": 0.0, "w_hidden_smooth": 0.0, "w_alone": 0.0, "w_edge": 0.0,
+    "w_distortion": 0.0, "w_hidden_smooth": 0.0, "w_planar": 0.0, "w_alone": 0.0, "w_edge": 0.0,
     "scale_lr_final": 1.0,
     "label_replay": 0.0, "final_label_trim": 0.0, "pair_minority": 0.0, "anchor_bias": 0.0,
     "label_stride": 1,
