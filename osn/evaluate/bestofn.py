@@ -232,10 +232,23 @@ def _single_solution_scores(run: TrainedRun, samples: Samples, truth: Truth,
 
 
 def _true_scales_extra(res_true: ScoreResult) -> dict[str, Any]:
-    """The "true scales" row's per-ground-truth PSNR, and how often each ground truth's own
-    render is its best match."""
+    """The "true scales" row's per-ground-truth PSNR, how often each ground truth's own render is
+    its best match, and by how much it beats the others' on average (``true_scales_own_margin_db``:
+    per ground truth its own PSNR minus the mean over the other ground truths' scales, averaged;
+    None with one ground truth). Two ground truths a few percent apart in one object's scale can
+    swap places in the first; a wrong unit or object order takes the second to zero or below."""
     own = [r["match_index"] == g for g, r in enumerate(res_true.per_ground_truth)]
-    return {"true_scales_psnr": [r["psnr"] for r in res_true.per_ground_truth], "true_scales_own_match": float(np.mean(own))}
+    m = res_true.matrix  # (G, G): candidate c (ground truth c's scales) against ground truth g
+    G = m.shape[1]
+    margin = None
+    if G > 1:
+        seen = np.isfinite(m) & ~np.eye(G, dtype=bool)  # NaN: no co-visible view
+        count = seen.sum(0)
+        others = np.where(seen, m, 0.0).sum(0) / np.maximum(count, 1)
+        gaps = np.where(count > 0, np.diag(m) - others, np.nan)
+        margin = float(gaps[np.isfinite(gaps)].mean()) if np.isfinite(gaps).any() else None
+    return {"true_scales_psnr": [r["psnr"] for r in res_true.per_ground_truth], "true_scales_own_match": float(np.mean(own)),
+            "true_scales_own_margin_db": margin}
 
 
 def _run_extra(run: TrainedRun, samples: Samples, truth: Truth, approx_mean: np.ndarray, cand: np.ndarray,

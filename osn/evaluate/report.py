@@ -101,7 +101,9 @@ def _true_scales_note(e: dict[str, Any]) -> str:
             "exact scales (best of those G), what best of N approaches as its samples approach the exact "
             "configurations. The gap between the two is the scale search's; the row's own error is the fields' "
             "(best of N can exceed it in PSNR where a wrong configuration hides a field error: SSIMAE, PQ and mIoU "
-            f"show the layout). {100 * e['true_scales_own_match']:.0f}% of ground truths match their own scales.")
+            f"show the layout). {100 * e['true_scales_own_match']:.0f}% of ground truths match their own scales"
+            + ("." if e.get("true_scales_own_margin_db") is None else
+               f", {e['true_scales_own_margin_db']:+.2f} dB above the other ground truths' scales on average."))
 
 
 def _fmt(ms: list[float], f: str) -> str:
