@@ -5,7 +5,7 @@ floor too near wherever its depths are missing, even from exact poses; that cuts
 object standing on it (docs/training.md, Losses). The anchor is static: its sparse depths of
 all frames lie in one coordinate frame, where a floor or a wall is one plane however few points a
 single frame gives it. A plane that enough points of several frames support, and that hides none
-of the surfaces they show (:func:`contradicted_share`), gives, in every frame, a depth on each
+of the surfaces they show and lies behind none (:func:`contradicted_share`), gives, in every frame, a depth on each
 pixel whose ray meets it inside the hull of its points, the nearest such plane along the ray (a
 camera inside a room sees the nearest wall), whether the anchor is visible there or hidden by an
 object. Nothing is extrapolated: a ray that meets no plane inside its points' hull gets no
@@ -44,11 +44,13 @@ FLAT_RATIO = 1.2
 #: ... unless the plane's median residual is below this share of depth anyway: a bend that small
 #: (a rendered floor's, 1e-4) moves no depth target enough to matter.
 FLAT_FLOOR = 1e-3
-#: A plane is dropped when more than this share of the anchor's sparse depths whose rays meet it
-#: inside its hull lie behind it by more than :data:`PLANE_TOLERANCE` of their depth: the plane
-#: would hide surfaces the video shows. A plane through a room's seam or across two walls' points
-#: is contradicted by a third to three quarters of them, a wall or floor of SfM's by a few per cent
-#: (its noisiest depths).
+#: A plane is dropped when, of the anchor's sparse depths whose rays meet it inside its hull, the
+#: share lying off it by more than :data:`PLANE_TOLERANCE` of their depth on one side exceeds the
+#: share off it on the other by more than this. About a surface the video shows, a depth's scatter
+#: is as likely on either side (SfM's floor: 12 to 18% of its depths off each way); a plane in
+#: front of that surface would hide what the video shows (its depths lie behind it), a plane
+#: behind it is not the nearest surface there (its depths lie in front: SfM's back wall met by the
+#: floor's rays). Such planes are one-sided by a third to nearly all of their depths.
 MAX_CONTRADICTED = 0.1
 #: RANSAC draws of three points per plane searched (a plane holding a tenth of the points is
 #: drawn with probability 1 - (1 - 0.001)^512, about 0.4 per search, and its inliers are refit).
@@ -212,10 +214,12 @@ def plane_depths(planes: list[Plane], dirs: np.ndarray, cam_to_obj: np.ndarray) 
 
 
 def contradicted_share(plane: Plane, inputs: SceneInputs, tolerance: float = PLANE_TOLERANCE) -> float:
-    """Of the anchor's sparse depths whose rays meet ``plane`` inside its hull, the share lying
-    behind it by more than ``tolerance`` of their depth (0 where no ray meets it)."""
+    """Of the anchor's sparse depths whose rays meet ``plane`` inside its hull, the share lying off
+    it by more than ``tolerance`` of their depth on one side beyond the share off it on the other
+    (behind it: it would hide them; in front: it lies behind what they show), 0 where no ray
+    meets it. Scatter about the surface cancels; a plane where the anchor is not does not."""
     o = inputs.objects[inputs.anchor_pos]
-    met = behind = 0
+    met = behind = front = 0
     for slot in range(len(o.frames)):
         pix, d = o.sparse_pix[slot], np.asarray(o.sparse_depth[slot], dtype=np.float64)
         if len(d) == 0:
@@ -225,7 +229,8 @@ def contradicted_share(plane: Plane, inputs: SceneInputs, tolerance: float = PLA
         hit = np.isfinite(at)
         met += int(hit.sum())
         behind += int((at[hit] < d[hit] * (1.0 - tolerance)).sum())
-    return behind / met if met else 0.0
+        front += int((d[hit] < at[hit] * (1.0 - tolerance)).sum())
+    return abs(behind - front) / met if met else 0.0
 
 
 def planar_depths(inputs: SceneInputs, seed: int = 0) -> PlanarDepths:

@@ -119,3 +119,22 @@ def test_a_plane_that_would_hide_what_the_video_shows_is_contradicted(tiny_datas
     moved = dataclasses.replace(p, offset=offset, hull=Delaunay((pts - p.normal * (p.offset - offset)) @ p.basis.T))
     assert contradicted_share(moved, inputs) > 0.5
     assert len(planar_depths(inputs).planes) == len(planes)
+
+
+def test_a_plane_behind_what_the_video_shows_is_contradicted(tiny_dataset: Path) -> None:
+    """A plane behind the anchor's visible surface is not the nearest surface where the rays meet
+    it (SfM's back wall met by the floor's rays): the depths lie in front of it, and it is dropped
+    as a plane in front of them is. Noise about the true plane does not contradict it."""
+    inputs = oracle_inputs(tiny_dataset)
+    planes = fit_planes(*anchor_points(inputs))
+    anchor = inputs.objects[inputs.anchor_pos]
+    centre = anchor.cam_to_obj[:, :3, 3].mean(axis=0)
+    p = planes[0]
+    away = p.offset + 0.5 * (float(p.normal @ centre) + p.offset)  # as far again beyond it as half its distance
+    moved = dataclasses.replace(p, offset=away)
+    assert contradicted_share(moved, inputs) > 0.5
+    # Depths scattered by 5% (beyond the 3% band) on both sides of the true planes: not one-sided.
+    rng = np.random.default_rng(0)
+    noisy = dataclasses.replace(anchor, sparse_depth=[d * rng.choice([0.95, 1.0, 1.05], len(d)) for d in anchor.sparse_depth])
+    inputs_noisy = dataclasses.replace(inputs, objects=[noisy if o is anchor else o for o in inputs.objects])
+    assert all(contradicted_share(q, inputs_noisy) <= MAX_CONTRADICTED for q in planes)
