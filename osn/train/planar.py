@@ -5,7 +5,7 @@ floor too near wherever its depths are missing, even from exact poses; that cuts
 object standing on it (docs/training.md, Losses). The anchor is static: its sparse depths of
 all frames lie in one coordinate frame, where a floor or a wall is one plane however few points a
 single frame gives it. A plane that enough points of several frames support, and that hides none
-of the surfaces they show and lies behind none (:func:`contradicted_share`), gives, in every frame, a depth on each
+of the surfaces they show and lies behind none (:func:`kept_planes`), gives, in every frame, a depth on each
 pixel whose ray meets it inside the hull of its points, the nearest such plane along the ray (a
 camera inside a room sees the nearest wall), whether the anchor is visible there or hidden by an
 object. Nothing is extrapolated: a ray that meets no plane inside its points' hull gets no
@@ -44,14 +44,14 @@ FLAT_RATIO = 1.2
 #: ... unless the plane's median residual is below this share of depth anyway: a bend that small
 #: (a rendered floor's, 1e-4) moves no depth target enough to matter.
 FLAT_FLOOR = 1e-3
-#: A plane is dropped when, of the anchor's sparse depths whose rays meet it inside its hull, the
-#: share lying off it by more than :data:`PLANE_TOLERANCE` of their depth on one side exceeds the
-#: share off it on the other by more than this. About a surface the video shows, a depth's scatter
-#: is as likely on either side (SfM's floor: 12 to 18% of its depths off each way); a plane in
-#: front of that surface would hide what the video shows (its depths lie behind it), a plane
-#: behind it is not the nearest surface there (its depths lie in front: SfM's back wall met by the
-#: floor's rays). Such planes are one-sided by a third to nearly all of their depths.
-MAX_CONTRADICTED = 0.1
+#: A plane is dropped when, of the anchor's sparse depths whose rays meet it first among the planes
+#: kept (inside its hull: the depths whose target it would set), more than this share lie off it by
+#: more than :data:`PLANE_TOLERANCE` of their depth, on either side: behind it (it would hide what
+#: the video shows) or in front of it (it is not the nearest surface there: SfM's back wall met by
+#: the floor's rays when the floor is not kept). Most depths agree with a surface the video shows
+#: (SfM's floors: 20 to 30% of the depths they set off them, the oracle's none); a plane where the
+#: anchor is not has most of them off it, to nearly all.
+MAX_CONTRADICTED = 0.5
 #: RANSAC draws of three points per plane searched (a plane holding a tenth of the points is
 #: drawn with probability 1 - (1 - 0.001)^512, about 0.4 per search, and its inliers are refit).
 RANSAC_DRAWS = 512
@@ -193,13 +193,15 @@ def fit_planes(points: np.ndarray, depth: np.ndarray, frames: np.ndarray, seed: 
     return planes
 
 
-def plane_depths(planes: list[Plane], dirs: np.ndarray, cam_to_obj: np.ndarray) -> np.ndarray:
-    """Per ray the depth of the nearest plane it meets inside its points' hull: ``dirs (N, 3)``
-    camera-frame directions with unit z, ``cam_to_obj (4, 4)``; NaN where it meets none."""
+def nearest_planes(planes: list[Plane], dirs: np.ndarray, cam_to_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray the depth of the nearest plane it meets inside its points' hull and that plane's
+    index in ``planes``: ``dirs (N, 3)`` camera-frame directions with unit z, ``cam_to_obj (4, 4)``;
+    NaN and -1 where it meets none."""
     best = np.full(len(dirs), np.inf)
+    which = np.full(len(dirs), -1, dtype=np.int64)
     world = dirs @ cam_to_obj[:3, :3].T
     origin = cam_to_obj[:3, 3]
-    for pl in planes:
+    for k, pl in enumerate(planes):
         along = world @ pl.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -(pl.normal @ origin + pl.offset) / along
@@ -208,36 +210,57 @@ def plane_depths(planes: list[Plane], dirs: np.ndarray, cam_to_obj: np.ndarray) 
             continue
         idx = np.nonzero(hit)[0]
         xy = (origin + t[idx, None] * world[idx]) @ pl.basis.T
-        inside = pl.hull.find_simplex(xy) >= 0
-        best[idx[inside]] = t[idx[inside]]
-    return np.where(np.isfinite(best), best, np.nan)
+        inside = idx[pl.hull.find_simplex(xy) >= 0]
+        best[inside], which[inside] = t[inside], k
+    return np.where(np.isfinite(best), best, np.nan), which
 
 
-def contradicted_share(plane: Plane, inputs: SceneInputs, tolerance: float = PLANE_TOLERANCE) -> float:
-    """Of the anchor's sparse depths whose rays meet ``plane`` inside its hull, the share lying off
-    it by more than ``tolerance`` of their depth on one side beyond the share off it on the other
-    (behind it: it would hide them; in front: it lies behind what they show), 0 where no ray
-    meets it. Scatter about the surface cancels; a plane where the anchor is not does not."""
+def plane_depths(planes: list[Plane], dirs: np.ndarray, cam_to_obj: np.ndarray) -> np.ndarray:
+    """Per ray the depth of the nearest plane it meets inside its points' hull (NaN where none);
+    :func:`nearest_planes`."""
+    return nearest_planes(planes, dirs, cam_to_obj)[0]
+
+
+def contradicted_shares(planes: list[Plane], inputs: SceneInputs, tolerance: float = PLANE_TOLERANCE) -> np.ndarray:
+    """``(P,)``: per plane, of the anchor's sparse depths whose rays meet it first among
+    ``planes`` (inside its hull: the depths whose target it would set), the share lying off it by
+    more than ``tolerance`` of their depth, behind it (it would hide them) or in front of it (it
+    lies behind what they show); 0 for a plane that sets no depth's target. A plane behind
+    another one is judged only where it is the nearest."""
     o = inputs.objects[inputs.anchor_pos]
-    met = behind = front = 0
+    met, behind, front = (np.zeros(len(planes), dtype=np.int64) for _ in range(3))
     for slot in range(len(o.frames)):
         pix, d = o.sparse_pix[slot], np.asarray(o.sparse_depth[slot], dtype=np.float64)
         if len(d) == 0:
             continue
         _, dirs = pixel_rays(inputs.K, np.eye(4), inputs.width, inputs.height, pix)
-        at = plane_depths([plane], dirs, o.cam_to_obj[slot])
-        hit = np.isfinite(at)
-        met += int(hit.sum())
-        behind += int((at[hit] < d[hit] * (1.0 - tolerance)).sum())
-        front += int((d[hit] < at[hit] * (1.0 - tolerance)).sum())
-    return abs(behind - front) / met if met else 0.0
+        at, which = nearest_planes(planes, dirs, o.cam_to_obj[slot])
+        hit = which >= 0
+        met += np.bincount(which[hit], minlength=len(planes))
+        behind += np.bincount(which[hit], weights=at[hit] < d[hit] * (1.0 - tolerance), minlength=len(planes)).astype(np.int64)
+        front += np.bincount(which[hit], weights=d[hit] < at[hit] * (1.0 - tolerance), minlength=len(planes)).astype(np.int64)
+    return (behind + front) / np.maximum(met, 1)
+
+
+def kept_planes(planes: list[Plane], inputs: SceneInputs, most: float = MAX_CONTRADICTED) -> list[Plane]:
+    """``planes`` less those the anchor's depths contradict (:func:`contradicted_shares` above
+    ``most``), dropped one at a time, the most contradicted first, each time judged again among
+    those left (a dropped plane in front of another gives the depths behind it to that one)."""
+    keep = list(planes)
+    while keep:
+        shares = contradicted_shares(keep, inputs)
+        worst = int(np.argmax(shares))
+        if shares[worst] <= most:
+            break
+        del keep[worst]
+    return keep
 
 
 def planar_depths(inputs: SceneInputs, seed: int = 0) -> PlanarDepths:
     """Depth targets of the anchor from its planes (:func:`fit_planes`, less those its own depths
-    contradict: :data:`MAX_CONTRADICTED`) on every pixel of every frame it is posed in, but pixels of objects preprocessing dropped and pixels showing nothing."""
+    contradict: :func:`kept_planes`) on every pixel of every frame it is posed in, but pixels of objects preprocessing dropped and pixels showing nothing."""
     pts, dep, frm = anchor_points(inputs)
-    planes = [pl for pl in fit_planes(pts, dep, frm, seed) if contradicted_share(pl, inputs) <= MAX_CONTRADICTED]
+    planes = kept_planes(fit_planes(pts, dep, frm, seed), inputs)
     o = inputs.objects[inputs.anchor_pos]
     H, W = inputs.height, inputs.width
     if not planes:
