@@ -164,7 +164,7 @@ class TrainConfig:
     curvature on :data:`osn.train.trainer.HIDDEN_STRIPS` strips per step across pixels that
     objects hide it on (``osn.train.losses.disparity_curvature``): zero on any plane, so a floor
     continues behind what stands on it. Unit: loss weight. Neutral: 0 (term off)."""
-    w_planar: float = 0.0
+    w_planar: float = 1.0
     """addition (experiments/2026-12-01-anchor-planes.md): Weight of the anchor's depth targets from the
     planes its sparse depths of every frame support (``osn.train.planar``), on every pixel whose
     ray meets one inside its points' hull, in the anchor's stage-1 objective (so in every field step

@@ -98,11 +98,11 @@ def test_training_holds_the_anchor_to_its_planar_targets(tiny_dataset: Path) -> 
     """With ``w_planar`` the anchor's stage-1 objective has the planar term; at 0 the trainer
     builds no targets and has no such term."""
     inputs = oracle_inputs(tiny_dataset)
-    on = Trainer(inputs, small_config(w_planar=1.0), torch.device("cpu"))
+    on = Trainer(inputs, small_config(), torch.device("cpu"))  # on by default
     assert on.planar is not None and len(on.planar_depth) > 0
     losses = on.step_stage1()
     assert np.isfinite(losses["planar"]) and losses["planar"] > 0
-    off = Trainer(inputs, small_config(), torch.device("cpu"))  # off by default
+    off = Trainer(inputs, small_config(w_planar=0.0), torch.device("cpu"))
     assert off.planar is None and "planar" not in off.step_stage1()
 
 
