@@ -48,9 +48,8 @@ FLAT_FLOOR = 1e-3
 #: kept (inside its hull: the depths whose target it would set), more than this share lie off it by
 #: more than :data:`PLANE_TOLERANCE` of their depth, on either side: behind it (it would hide what
 #: the video shows) or in front of it (it is not the nearest surface there: SfM's back wall met by
-#: the floor's rays when the floor is not kept). Most depths agree with a surface the video shows
-#: (SfM's floors: 20 to 30% of the depths they set off them, the oracle's none); a plane where the
-#: anchor is not has most of them off it, to nearly all.
+#: the floor's rays when the floor is not kept). SfM's outliers about a surface the video shows are
+#: a minority of its depths; a plane where the anchor is not has most of them off it.
 MAX_CONTRADICTED = 0.5
 #: RANSAC draws of three points per plane searched (a plane holding a tenth of the points is
 #: drawn with probability 1 - (1 - 0.001)^512, about 0.4 per search, and its inliers are refit).
