@@ -36,6 +36,7 @@ def align_to_ground_truth(
     skews every scale-based evaluation figure); its ratio to the depth unit is reported
     (``similarity_unit_ratio``). An object whose similarity cannot be fitted still gets its unit.
     """
+    bridged = inputs.meta.get("bridged_frames", {})
     for o, rep in zip(inputs.objects, [r for r in report.objects if "error" not in r]):
         o.unit_to_world = depth_unit(o, depths)
         if o.unit_to_world is None:
@@ -43,7 +44,7 @@ def align_to_ground_truth(
         else:
             rep["sparse_depths_off_10pct"] = sparse_depth_outliers(o, depths)
         try:
-            rep.update(pose_accuracy(o, *true_camera_poses(scene, masks, o.id)))
+            rep.update(pose_accuracy(o, *true_camera_poses(scene, masks, o.id), bridged.get(str(o.id), ())))
         except ValueError as e:
             rep["alignment"] = f"not measurable: {e}"
     _align_test_views(inputs, report, scene)
@@ -59,30 +60,44 @@ def true_camera_poses(scene: D.Scene, masks: np.ndarray, object_id: int) -> tupl
     return frames, np.stack(poses) if poses else np.zeros((0, 4, 4))
 
 
-def pose_accuracy(o: ObjectInputs, gt_frames: np.ndarray, gt_cam_to_obj: np.ndarray) -> dict[str, float]:
+def pose_accuracy(o: ObjectInputs, gt_frames: np.ndarray, gt_cam_to_obj: np.ndarray,
+                  bridged: list[int] | tuple = ()) -> dict[str, float]:
     """Errors of the SfM poses of ``o`` after the similarity that best maps them onto the ground
     truth ``gt_cam_to_obj (F, 4, 4)`` (metres) at ``gt_frames (F,)``; raises ``ValueError`` when
-    that similarity cannot be fitted."""
+    that similarity cannot be fitted. The frames ``bridged`` (:mod:`osn.preprocess.bridge`) are
+    left out of the fit and of the registered frames' figures, and measured apart
+    (``bridged_*``) under the same similarity."""
     slot = {int(t): i for i, t in enumerate(gt_frames)}
-    keep = [i for i, t in enumerate(o.frames) if int(t) in slot]
+    extra = {int(t) for t in bridged}
+    keep = [i for i, t in enumerate(o.frames) if int(t) in slot and int(t) not in extra]
     gt_poses = gt_cam_to_obj[[slot[int(o.frames[i])] for i in keep]]
     S = fit_pose_similarity(o.cam_to_obj[keep], gt_poses)
     scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
     R = S[:3, :3] / scale
+
+    def errors(idx: list[int]) -> tuple[list[float], np.ndarray]:
+        gt = gt_cam_to_obj[[slot[int(o.frames[i])] for i in idx]]
+        rot = [rotation_angle_deg(R @ o.cam_to_obj[i, :3, :3], g[:3, :3]) for i, g in zip(idx, gt)]
+        aligned = o.cam_to_obj[idx, :3, 3] @ S[:3, :3].T + S[:3, 3]
+        return rot, np.linalg.norm(aligned - gt[:, :3, 3], axis=1)  # metres
+
     out = {}
     if o.unit_to_world is not None:
         out["similarity_unit_ratio"] = scale / o.unit_to_world
-    rot = [rotation_angle_deg(R @ o.cam_to_obj[i, :3, :3], g[:3, :3]) for i, g in zip(keep, gt_poses)]
-    aligned = o.cam_to_obj[keep, :3, 3] @ S[:3, :3].T + S[:3, 3]
-    err = np.linalg.norm(aligned - gt_poses[:, :3, 3], axis=1)  # metres
+    rot, err = errors(keep)
     out.update(
         gt_visible_frames=len(gt_frames),
-        registered_fraction=len(o.frames) / max(len(gt_frames), 1),
+        registered_fraction=(len(o.frames) - len(extra)) / max(len(gt_frames), 1),
         rotation_error_deg_max=float(max(rot)),
         rotation_error_deg_mean=float(np.mean(rot)),
         center_error_m_mean=float(err.mean()),
         center_error_m_max=float(err.max()),
     )
+    extra_idx = [i for i, t in enumerate(o.frames) if int(t) in slot and int(t) in extra]
+    if extra_idx:
+        rot, err = errors(extra_idx)
+        out.update(bridged_rotation_error_deg_max=float(max(rot)), bridged_rotation_error_deg_mean=float(np.mean(rot)),
+                   bridged_center_error_m_mean=float(err.mean()), bridged_center_error_m_max=float(err.max()))
     return out
 
 

@@ -114,7 +114,7 @@ def partners(F: int, most: int = MAX_PARTNERS) -> np.ndarray:
     return (i != j) & (np.abs(i - j) % step == 0)
 
 
-def _thinned(points: list[np.ndarray], most: int = MAX_POINTS) -> list[np.ndarray]:
+def thinned(points: list[np.ndarray], most: int = MAX_POINTS) -> list[np.ndarray]:
     """At most ``most`` of each frame's points, evenly spaced."""
     return [p if len(p) <= most else p[np.linspace(0, len(p) - 1, most).astype(np.int64)] for p in points]
 
@@ -127,20 +127,15 @@ def mask_misses(frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndar
     of frame i are projected).
 
     Points behind the camera or outside the image are not tested, nor those landing on another
-    object that may hide them: any other object for the anchor, any but the anchor (which lies
-    behind the objects it holds) and the no-object id 255 for the others.
+    object that may hide them (:func:`silhouette_masks`).
     """
     F = len(frames)
     H, W = masks.shape[1:]
-    r = max(0, int(np.ceil(tol_px)))
-    disk = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= tol_px + 1e-9
     out = np.full((F, F), np.nan)
     pairs = partners(F)
-    points = _thinned(points)
+    points = thinned(points)
     for j, t in enumerate(frames):
-        m = masks[int(t)]
-        own = ndimage.binary_dilation(m == object_id, structure=disk) if r else m == object_id
-        hide = (m != object_id) & (m != 255) if object_id == anchor else (m != object_id) & (m != anchor) & (m != 255)
+        own, hide = silhouette_masks(masks[int(t)], object_id, anchor, tol_px)
         for i in np.flatnonzero(pairs[:, j]):
             if not len(points[i]):
                 continue
@@ -150,6 +145,48 @@ def mask_misses(frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndar
             if tested.any():
                 out[i, j] = float(np.mean(~own[v, u][tested]))
     return out
+
+
+def _disk(radius: float) -> np.ndarray:
+    r = max(0, int(np.ceil(radius)))
+    return np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= radius + 1e-9
+
+
+def silhouette_masks(mask: np.ndarray, object_id: int, anchor: int, tol_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(own, hide)`` of one frame's instance ids ``mask (H, W)``: the object's mask dilated by
+    ``tol_px``, and where another object may hide it (any other object for the anchor; any but
+    the anchor, which lies behind the objects it holds, for the others; never the no-object id)."""
+    own = mask == object_id
+    if tol_px >= 1:
+        own = ndimage.binary_dilation(own, structure=_disk(tol_px))
+    hide = (mask != object_id) & (mask != 255)
+    if object_id != anchor:
+        hide &= mask != anchor
+    return own, hide
+
+
+def silhouette_agreement(points: np.ndarray, cam_to_obj: np.ndarray, mask: np.ndarray, object_id: int, anchor: int,
+                         K: np.ndarray, tol_px: float) -> tuple[float, float]:
+    """How well the object's points ``(N, 3)`` seen with pose ``cam_to_obj (4, 4)`` fit its
+    silhouette in one frame's instance ids ``mask (H, W)``: ``(miss, cover)``, the share of the
+    tested points off the mask dilated by ``tol_px`` (as :func:`mask_misses`), and the share of the
+    object's visible mask pixels within ``tol_px`` of a point that lands on it. A pose off the
+    silhouette raises the first; one that shrinks the object inside it (too far away) lowers the
+    second. NaN where nothing could be tested."""
+    H, W = mask.shape
+    own, hide = silhouette_masks(mask, object_id, anchor, tol_px)
+    _, _, pix, inside = project_pixels(points, K, cam_to_obj, W, H)
+    u, v = pix[inside, 0], pix[inside, 1]
+    tested = ~hide[v, u]
+    miss = float(np.mean(~own[v, u][tested])) if tested.any() else float("nan")
+    visible = mask == object_id
+    hit = np.zeros_like(visible)
+    on = visible[v, u]
+    hit[v[on], u[on]] = True
+    if tol_px >= 1:
+        hit = ndimage.binary_dilation(hit, structure=_disk(tol_px))
+    cover = float(np.mean(hit[visible])) if visible.any() else float("nan")
+    return miss, cover
 
 
 def frame_medians(pairs: np.ndarray) -> np.ndarray:
@@ -178,7 +215,7 @@ def depth_disagreement(cam_to_obj: np.ndarray, sparse_pix: list[np.ndarray], spa
     F = len(cam_to_obj)
     out = np.full((F, F), np.nan)
     pairs = partners(F)
-    points = _thinned(points)
+    points = thinned(points)
     for j in range(F):
         pix_j = np.asarray(sparse_pix[j], dtype=np.float64).reshape(-1, 2) + 0.5
         if not len(pix_j):

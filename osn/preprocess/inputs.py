@@ -11,7 +11,8 @@ errors; ``osn preprocess`` (pycolmap, :mod:`osn.preprocess.sfm`) writes the same
 images alone.
 
 Conventions:
-* Object coordinates: the OpenCV camera frame of the object's first frame, in the object's own
+* Object coordinates: the OpenCV camera frame of the object's first frame with sparse depths
+  (bridged frames, :mod:`osn.preprocess.bridge`, carry none), in the object's own
   unit (the oracle picks the unit that makes its median sparse depth 1, as an SfM
   reconstruction normalised by its points would). Poses ``cam_to_obj`` are rigid in that unit.
 * A configuration with actual (de-normalised) scales ``sbar`` puts a camera-frame point ``x``
@@ -438,7 +439,7 @@ def object_inputs_from_observations(
     """Normalise one object's poses and sparse depths (any unit) into :class:`ObjectInputs`.
 
     Shared by the oracle and SfM so both produce identical conventions: the object frame becomes
-    the camera of its first frame, the unit makes the median sparse depth 1, near/far come from
+    the camera of its first frame with sparse depths, the unit makes the median sparse depth 1, near/far come from
     robust percentiles of the depths, and the canonical box from percentiles of the points.
 
     Args:
@@ -449,7 +450,7 @@ def object_inputs_from_observations(
     if len(all_d) == 0 or not np.all(np.isfinite(all_d)) or np.any(all_d <= 0):
         raise InputsError(f"object {object_id} ({name}): no usable positive sparse depths")
     unit = float(np.median(all_d))
-    ref_inv = invert_pose(cam_to_obj[0])
+    ref_inv = invert_pose(cam_to_obj[next(n for n, d in enumerate(sparse_depth) if len(d))])
     poses = ref_inv[None] @ cam_to_obj  # camera t -> camera-of-first-frame, input unit, rigid
     poses[:, :3, 3] /= unit
     depths = [np.asarray(d, dtype=np.float64) / unit for d in sparse_depth]

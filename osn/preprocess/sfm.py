@@ -100,6 +100,10 @@ class PreprocessConfig:
             adjustment; 0 skips it. COLMAP's own global BA uses a squared loss, which lets the
             few bad observations of a weakly seen frame pull it (the gnome-house ring-toy's first
             frame at 1024 px); the default scale corrects it best of those tried (docs/preprocess.md).
+        bridge_unposed: pose an object in the frames its mask shows it in but SfM did not register
+            it (or the consistency check dropped), from its registered neighbours and the anchor's
+            cameras, where the bridged pose fits the mask as well as its registered poses fit
+            theirs (:mod:`osn.preprocess.bridge`); those frames carry no sparse depth.
     """
 
     matcher: str = "auto"
@@ -133,6 +137,7 @@ class PreprocessConfig:
     anchor_mapper_restarts: int = 4
     min_epipolar_consistency: float = 0.2
     final_cauchy_px: float = 0.5
+    bridge_unposed: bool = True
 
     def __post_init__(self) -> None:
         validate(self, "preprocess", PREPROCESS_RULES)
@@ -169,6 +174,7 @@ PREPROCESS_RULES = {
     "anchor_mapper_restarts": integer(0),
     "min_epipolar_consistency": number(0.0, 1.0, hi_open=True),
     "final_cauchy_px": number(0.0, what="a finite number >= 0 (0: no final robust BA)"),
+    "bridge_unposed": flag(),
 }
 
 

@@ -22,7 +22,8 @@ import numpy as np
 from scenecore import dataset as D
 from scenecore.cameras import intrinsics_from_fov
 from osn.preprocess.alignment import align_to_ground_truth
-from osn.preprocess.consistency import ObjectObservations, Verdict, assess_scene
+from osn.preprocess.bridge import Bridged, bridge_object
+from osn.preprocess.consistency import ObjectObservations, Verdict, assess_scene, frame_points
 from osn.preprocess.freespace import occluding_flags
 from osn.preprocess.inputs import (
     IGNORE_ID,
@@ -84,6 +85,7 @@ def _preprocess_video(
     objects: list[ObjectInputs] = []
     results = reconstruct_objects(images, masks, K, object_names, anchor, cfg, progress, work_dir, workers)
     verdicts = check_reconstructions(results, masks, K, timestamps, object_names, anchor, cfg)
+    bridged = bridge_unposed(results, verdicts, masks, K, timestamps, anchor, cfg) if cfg.bridge_unposed else {}
     for oid, name in sorted(object_names.items()):
         sfm = results[oid]
         if isinstance(sfm, ObjectRegistrationError):
@@ -101,7 +103,7 @@ def _preprocess_video(
             continue
         if verdict.message:
             log.warning("%s", verdict.message)
-        sfm = without_frames(sfm, verdict.bad_frames)
+        sfm = with_bridged(without_frames(sfm, verdict.bad_frames), bridged.get(oid))
         flags = occluding_flags(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K, W, H)
         drop = cfg.drop_occluding != "none"
         # The anchor's flagged depths still set its near plane (the scene volume of Eq. 1) under
@@ -112,7 +114,10 @@ def _preprocess_video(
         obj = object_inputs_from_observations(oid, name, sfm.frames, sfm.cam_to_obj, pix, dep, wt, K, W, H,
                                               cfg.box_padding, metres_per_unit=None)
         objects.append(without_depths(obj, flags) if drop and not before else obj)
-        report.objects.append({**_object_report(oid, name, sfm, flags, drop), "consistency": verdict.record()})
+        b = bridged.get(oid)
+        report.objects.append({**_object_report(oid, name, sfm, flags, drop, b.frames if b else []),
+                               "consistency": verdict.record(),
+                               **bridge_record(bridged.get(oid))})
     masks = masks.copy()
     for oid in report.dropped:
         masks[masks == oid] = IGNORE_ID
@@ -122,11 +127,64 @@ def _preprocess_video(
         objects=objects, anchor=anchor, scene_near=scene_near, scene_far=scene_far, source="colmap",
         meta={"preprocess": cfg.__dict__, "dropped_objects": report.dropped,
               "untrusted_depths": [k for k, v in sorted(verdicts.items()) if not v.use_depths and not v.drop],
+              "bridged_frames": {str(k): b.frames for k, b in sorted(bridged.items())
+                                 if b.frames and k not in report.dropped},
               "consistency": {str(k): consistency_summary(v) for k, v in sorted(verdicts.items())},
               "likely_reversed": {str(o.id): reversed_message(o.id, o.name, results[o.id].twin) for o in objects
                                   if results[o.id].twin.get("fits_better")}},
     )
     return inputs, report
+
+
+def bridge_unposed(
+    results: dict[int, ObjectSfM | ObjectRegistrationError], verdicts: dict[int, Verdict], masks: np.ndarray,
+    K: np.ndarray, timestamps: np.ndarray, anchor: int, cfg: PreprocessConfig,
+) -> dict[int, Bridged]:
+    """Per kept object other than the anchor, the frames its mask shows it in without a pose,
+    bridged from its registered neighbours and the anchor's cameras (:func:`osn.preprocess.bridge.bridge_object`;
+    each reconstruction without the frames its consistency verdict dropped). Objects whose depths
+    the verdict distrusts are not bridged: the test of a bridged pose projects them."""
+    anc = results.get(anchor)
+    if not isinstance(anc, ObjectSfM) or verdicts[anchor].drop:
+        return {}
+    anc = without_frames(anc, verdicts[anchor].bad_frames)
+    anc_depth = float(np.median(np.concatenate(anc.sparse_depth))) if anc.sparse_depth else float("nan")
+    out = {}
+    for oid, sfm in sorted(results.items()):
+        # The silhouette test projects the object's points: not from depths the checks distrust.
+        if oid == anchor or isinstance(sfm, ObjectRegistrationError) or verdicts[oid].drop or not verdicts[oid].use_depths:
+            continue
+        sfm = without_frames(sfm, verdicts[oid].bad_frames)
+        depths = np.concatenate(sfm.sparse_depth) if sfm.sparse_depth else np.zeros(0)
+        out[oid] = bridge_object(
+            sfm.frames, sfm.cam_to_obj, frame_points(sfm.cam_to_obj, sfm.sparse_pix, sfm.sparse_depth, K),
+            float(np.median(depths)) if len(depths) else float("nan"), anc.frames, anc.cam_to_obj, anc_depth, masks,
+            timestamps, oid, anchor, K, verdicts[oid].figures["mask_tolerance_px"], cfg.min_mask_pixels,
+        )
+    return out
+
+
+def with_bridged(sfm: ObjectSfM, bridged: Bridged | None) -> ObjectSfM:
+    """``sfm`` with the frames ``bridged`` posed (no sparse depth there), in time order."""
+    if bridged is None or not bridged.frames:
+        return sfm
+    frames = np.concatenate([sfm.frames, np.asarray(bridged.frames, dtype=sfm.frames.dtype)])
+    poses = np.concatenate([sfm.cam_to_obj, np.stack(bridged.poses)])
+    empty = len(bridged.frames)
+    pix = sfm.sparse_pix + [np.zeros((0, 2), dtype=np.int64)] * empty
+    dep = sfm.sparse_depth + [np.zeros(0)] * empty
+    wt = sfm.sparse_weight + [np.zeros(0)] * empty
+    order = np.argsort(frames, kind="stable")
+    return dataclasses.replace(sfm, frames=frames[order], cam_to_obj=poses[order], sparse_pix=[pix[i] for i in order],
+                               sparse_depth=[dep[i] for i in order], sparse_weight=[wt[i] for i in order])
+
+
+def bridge_record(bridged: Bridged | None) -> dict:
+    """What the report says of an object's bridged frames (nothing when none was a candidate)."""
+    if bridged is None or not bridged.record:
+        return {}
+    return {"bridged_frames": bridged.frames, "bridge": {"max_miss": bridged.max_miss, "min_cover": bridged.min_cover,
+                                                         "frames": bridged.record}}
 
 
 def reversed_message(oid: int, name: str, twin: dict) -> str:
@@ -262,14 +320,16 @@ def object_work_dir(work_dir: str | Path, object_id: int) -> Path:
     return Path(work_dir) / f"object_{object_id}"
 
 
-def _object_report(oid: int, name: str, sfm: ObjectSfM, flags: list[np.ndarray], dropped: bool) -> dict:
+def _object_report(oid: int, name: str, sfm: ObjectSfM, flags: list[np.ndarray], dropped: bool,
+                   bridged: list[int] = ()) -> dict:
     """The report entry of a registered object (without ground truth; ``flags``: per frame the
-    depths :func:`~osn.preprocess.freespace.occluding_flags` flags, ``dropped``: whether they were dropped)."""
+    depths :func:`~osn.preprocess.freespace.occluding_flags` flags, ``dropped``: whether they were
+    dropped; ``bridged``: the frames of ``sfm`` that :func:`with_bridged` added)."""
     return {
         "id": oid,
         "name": name,
         "candidate_frames": sfm.candidate_frames,
-        "registered_frames": len(sfm.frames),
+        "registered_frames": len(sfm.frames) - len(bridged),
         "features": sfm.num_features,
         "points": sfm.num_points,
         "points_behind_dropped": sfm.points_behind_dropped,
@@ -312,6 +372,14 @@ def report_lines(objects: list[dict]) -> list[str]:
             lines.append(f"    {reversed_message(r['id'], r['name'], r['twin'])}")
         if r.get("consistency", {}).get("message"):
             lines.append(f"    {r['consistency']['action']}: {r['consistency']['message']}")
+        if r.get("bridge"):
+            b = r["bridge"]
+            line = (f"    bridged {len(r['bridged_frames'])} of {len(b['frames'])} unposed frames from its neighbours "
+                    f"({', '.join(map(str, r['bridged_frames'])) or 'none fits its mask'})")
+            if "bridged_rotation_error_deg_max" in r:
+                line += (f", rotation error max {r['bridged_rotation_error_deg_max']:.3f} deg, centre error mean "
+                         f"{r['bridged_center_error_m_mean']:.4f} m")
+            lines.append(line)
     return lines
 
 

@@ -72,7 +72,9 @@ def test_a_correct_reconstruction_is_not_flagged(scene, monkeypatch):
     inputs, report = _preprocess(scene, scene["results"], monkeypatch)
     assert report.dropped == [] and inputs.meta["untrusted_depths"] == []
     for o in inputs.objects:
-        assert np.array_equal(o.frames, scene["results"][o.id].frames)
+        # SfM's frames, and those it left the object unposed in, bridged (the block's last three here).
+        bridged = inputs.meta["bridged_frames"].get(str(o.id), [])
+        assert sorted([*scene["results"][o.id].frames, *bridged]) == list(o.frames)
         assert sum(len(d) for d in o.sparse_depth) > 0
     assert all(r["consistency"]["verdict"] == "consistent" for r in report.objects)
     assert not any("SfM inconsistent" in line for line in video.report_lines(report.objects))
@@ -91,8 +93,8 @@ def test_frames_turned_18_degrees_are_found_and_dropped(scene, monkeypatch, capl
     assert verdicts[ROOM].action == "keep" and verdicts[BLOCK].action == "keep"
     with caplog.at_level(logging.WARNING, logger="osn.preprocess.video"):
         inputs, report = _preprocess(scene, broken, monkeypatch)
-    assert list(inputs.object(BALL).frames) == [0, 2, 4, 5, 6, 7]
-    assert np.array_equal(inputs.object(BLOCK).frames, scene["results"][BLOCK].frames)
+    assert list(inputs.object(BALL).frames) == list(range(8)) and inputs.meta["bridged_frames"]["1"] == [1, 3]
+    assert list(inputs.object(BLOCK).frames) == [*scene["results"][BLOCK].frames, *inputs.meta["bridged_frames"]["2"]]
     (warning,) = [r.getMessage() for r in caplog.records if "SfM inconsistent" in r.getMessage()]
     assert "\n" not in warning and "object 1 (ball)" in warning and "(1, 3)" in warning and "dropped" in warning
     entry = next(r for r in report.objects if r["id"] == BALL)
