@@ -58,19 +58,27 @@ def _inputs_line(run_dir: Path) -> str:
 def _consistency_lines(run_dir: Path) -> list[str]:
     """A paragraph on the SfM reconstructions the preprocessing check found inconsistent, and what
     was done with each, and on those likely depth-reversed (``meta.consistency`` and
-    ``meta.likely_reversed`` of the run's ``inputs.json``; none: no lines)."""
+    ``meta.likely_reversed`` of the run's ``inputs.json``), and one on the frames bridged
+    (``meta.bridged_frames``); none: no lines."""
     try:
-        meta = read_json(Path(run_dir) / "inputs" / "inputs.json").get("meta", {})
+        rec = read_json(Path(run_dir) / "inputs" / "inputs.json")
+        meta = rec.get("meta", {})
         checks, reversed_ = meta.get("consistency") or {}, meta.get("likely_reversed") or {}
+        bridged = meta.get("bridged_frames") or {}
+        names = {str(o.get("id")): o.get("name", "?") for o in rec.get("objects", []) if isinstance(o, dict)}
     except (OSError, ValueError, AttributeError):
         return []
     flagged = [f"- {c.get('action', '?')}: {c['message']}" for c in checks.values()
                if isinstance(c, dict) and c.get("message")]
     flagged += [f"- likely depth-reversed: {m}" for m in reversed_.values() if isinstance(m, str)]
-    if not flagged:
-        return []
-    return ["SfM reconstructions that contradict the video (checked without ground truth, docs/preprocess.md):",
-            "", *flagged, ""]
+    out = (["SfM reconstructions that contradict the video (checked without ground truth, docs/preprocess.md):",
+            "", *flagged, ""] if flagged else [])
+    lines = [f"- object {k} ({names.get(k, '?')}): frames {', '.join(map(str, v))}" for k, v in bridged.items()
+             if isinstance(v, list) and v]
+    if lines:
+        out += ["Frames SfM left an object unposed in, posed from its registered neighbours and the anchor's cameras "
+                "(each fits the mask as well as the registered poses fit theirs; docs/preprocess.md):", "", *lines, ""]
+    return out
 
 
 def _environment_lines(run_dir: Path) -> list[str]:

@@ -1,7 +1,8 @@
-"""Poses for the frames SfM left an object unposed in, bridged from its registered neighbours.
+"""Poses for the frames SfM left an object unposed in, bridged from its posed neighbours.
 
 Per-object SfM may register a mover in only some of the frames its mask shows it in (too few
-matches there). Training draws no ray from the object's pixels in those frames, so every depth
+matches there; often every frame after some point, as the mover turns), and the consistency check
+may drop frames. Training draws no ray from the object's pixels in those frames, so every depth
 order seen only there (an object passing in front of another) is lost to the scale network.
 
 All objects are filmed by one camera, and the anchor's SfM usually registers that camera in every
@@ -10,15 +11,19 @@ point ``y`` in the object's own unit, ``s`` the unknown anchor units per object 
 ``W = R_anchor R_k^T`` and ``p = c_anchor - s W c_k`` from the two cameras' rotations ``R`` and
 centres ``c`` (:func:`object_in_anchor`). Between two registered frames the object's orientation
 is interpolated by slerp and its position linearly, by timestamp, and the camera-to-object pose
-rebuilt from the anchor's camera there (:func:`bridged_pose`); past the last registered frame
-the last two extrapolate. The position depends on ``s`` only through the curvature of the
-camera's path between the neighbours, so ``s`` is chosen from a log-spaced range by how well
-the object's points then fit its silhouette in that frame.
+rebuilt from the anchor's camera there (:func:`bridged_pose`). Past the registered span the two
+nearest posed frames extrapolate, one frame at a time outward, each bridged frame a neighbour of
+the next. The position depends on ``s`` only through the curvature of the camera's path between
+the neighbours, so ``s`` is chosen from a log-spaced range by how well the object's points then
+fit its silhouette in that frame.
 
 A bridged pose is kept only when it fits the frame's mask no worse than the object's own
 registered poses fit theirs (:func:`osn.preprocess.consistency.silhouette_agreement`, both
 measured with the other frames' points): no more of its points off the mask than the worst
-registered frame, and no less of the mask covered by them. Bridged frames carry no sparse depth.
+registered frame, and no less of the mask covered by them. A predicted pose that fails is first
+shifted across the view onto the silhouette (:func:`refine_to_silhouette`: a mover whose pace
+changed), its depth and orientation kept; one that still fails stays unposed and ends its chain.
+Bridged frames carry no sparse depth.
 """
 
 from __future__ import annotations
@@ -26,9 +31,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from osn.preprocess.consistency import silhouette_agreement, thinned
+from scenecore.cameras import invert_pose, project_pixels
+
+from osn.preprocess.consistency import silhouette_agreement, silhouette_masks, thinned
 
 #: Candidate scales, as factors of the scale at which the object's median sparse depth equals the
 #: anchor's (objects stand in front of the anchor, so mostly below it): 2^(k/2), k = -12 .. 2.
@@ -80,16 +90,6 @@ class Bridged:
     min_cover: float = float("nan")
 
 
-def _neighbours(t: float, ts: np.ndarray) -> tuple[int, int] | None:
-    """Indices of the two registered timestamps ``ts`` (sorted) that bracket ``t``, or the two
-    nearest on its side when it lies outside them; None with fewer than two."""
-    if len(ts) < 2:
-        return None
-    i = int(np.searchsorted(ts, t))
-    i = min(max(i, 1), len(ts) - 1)
-    return i - 1, i
-
-
 def bridge_object(
     frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndarray], depth_median: float,
     anchor_frames: np.ndarray, anchor_cam_to_obj: np.ndarray, anchor_depth_median: float,
@@ -126,34 +126,109 @@ def bridge_object(
     out.max_miss, out.min_cover = float(own[:, 0].max()), float(own[:, 1].min())
     pts = np.concatenate([p for p in thin if len(p)])
     ts = np.asarray(timestamps, dtype=np.float64)
-    reg_t = ts[[int(frames[n]) for n in both]]
-    order = np.argsort(reg_t, kind="stable")
-    both, reg_t = [both[i] for i in order], reg_t[order]
     s0 = anchor_depth_median / depth_median
     candidates = [*(s0 * SCALE_FACTORS), np.inf]
-    for t in shown:
-        a, b = _neighbours(ts[t], reg_t)
-        na, nb = both[a], both[b]
-        span = reg_t[b] - reg_t[a]
-        alpha = (ts[t] - reg_t[a]) / span if span > 0 else 0.5
-        anc = [anchor_cam_to_obj[slot[int(frames[n])]] for n in (na, nb)]
-        best = None
-        for s in candidates:
-            M = bridged_pose(alpha, cam_to_obj[na], cam_to_obj[nb], anc[0], anc[1], anchor_cam_to_obj[slot[t]], s)
-            miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
-            if not (np.isfinite(miss) and np.isfinite(cover)):
+    # Posed frames (registered, then bridged) where the anchor is posed too: time index -> pose.
+    posed = {int(frames[n]): cam_to_obj[n] for n in both}
+    first, last = min(posed), max(posed)
+    inner = [t for t in shown if first < t < last]
+    # Outward from the registered span, one frame at a time: each bridged frame is a neighbour of
+    # the next, and the first one refused ends the chain on that side.
+    chains = [sorted(t for t in shown if t > last), sorted((t for t in shown if t < first), reverse=True)]
+    for group, chained in ((inner, False), *((c, True) for c in chains)):
+        for t in group:
+            known = np.array(sorted(posed), dtype=np.int64)
+            if chained:  # the two posed frames nearest t on its side
+                near = known[np.argsort(np.abs(known - t), kind="stable")[:2]]
+                ta, tb = (int(x) for x in sorted(near, key=lambda x: ts[x]))
+            else:  # registered frames only around an inner gap
+                reg = np.array(sorted(int(frames[n]) for n in both))
+                ta, tb = int(reg[reg < t].max()), int(reg[reg > t].min())
+            span = ts[tb] - ts[ta]
+            alpha = (ts[t] - ts[ta]) / span if span > 0 else 0.5
+            best = None
+            for sc in candidates:
+                M = bridged_pose(alpha, posed[ta], posed[tb], anchor_cam_to_obj[slot[ta]], anchor_cam_to_obj[slot[tb]],
+                                 anchor_cam_to_obj[slot[t]], sc)
+                miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
+                if np.isfinite(miss) and np.isfinite(cover) and (best is None or miss - cover < best[0]):
+                    best = (miss - cover, sc, M)
+            if best is None:
+                out.record[str(t)] = {"kept": False, "why": "no point of the object lands in the frame"}
+                if chained:
+                    break
                 continue
-            score = miss + (1.0 - cover)
-            if best is None or score < best[0]:
-                best = (score, miss, cover, s, M)
-        if best is None:
-            out.record[str(t)] = {"kept": False, "why": "no point of the object lands in the frame"}
-            continue
-        _, miss, cover, s, M = best
-        kept = bool(miss <= out.max_miss and cover >= out.min_cover)
-        out.record[str(t)] = {"kept": kept, "miss": miss, "cover": cover, "alpha": float(alpha),
-                              "scale_factor": None if np.isinf(s) else float(s / s0)}
-        if kept:
-            out.frames.append(int(t))
-            out.poses.append(M)
+            _, sc, M = best
+            miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
+            refined = not (miss <= out.max_miss and cover >= out.min_cover)
+            if refined:  # the motion changed pace: shift the object across the view onto its silhouette
+                M = refine_to_silhouette(pts, M, masks[t], object_id, anchor, K, depth_median)
+                miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
+            kept = bool(miss <= out.max_miss and cover >= out.min_cover)
+            out.record[str(t)] = {"kept": kept, "miss": miss, "cover": cover, "from": [ta, tb], "alpha": float(alpha),
+                                  "refined": refined,
+                                  "scale_factor": None if np.isinf(sc) else float(sc / s0)}
+            if kept:
+                posed[t] = M
+                out.frames.append(int(t))
+                out.poses.append(M)
+            elif chained:
+                break
+    order = np.argsort(out.frames, kind="stable")
+    out.frames, out.poses = [out.frames[i] for i in order], [out.poses[i] for i in order]
     return out
+
+
+#: Mask pixels the silhouette fit measures per frame (evenly spaced; the fit is a mean distance).
+MAX_MASK_PIXELS = 2000
+
+
+def silhouette_distance(points: np.ndarray, cam_to_obj: np.ndarray, mask: np.ndarray, object_id: int, anchor: int,
+                        K: np.ndarray, outside: np.ndarray, hide: np.ndarray, pixels: np.ndarray) -> float:
+    """Two-sided mean distance (pixels) between the object's projected points and its visible
+    mask: points to the mask (``outside``: the distance transform of the mask's complement,
+    points on an object that may hide it not counted) plus the mask's ``pixels (P, 2)`` to the
+    nearest projected point; ``inf`` with fewer than three points in the frame."""
+    H, W = mask.shape
+    uv, _, pix, inside = project_pixels(points, K, cam_to_obj, W, H)
+    if int(inside.sum()) < 3:
+        return float("inf")
+    u, v = pix[inside, 0], pix[inside, 1]
+    free = ~hide[v, u]
+    to_mask = (ndimage.map_coordinates(outside, [uv[inside][free, 1] - 0.5, uv[inside][free, 0] - 0.5], order=1,
+                                       mode="nearest").mean() if free.any() else 0.0)
+    to_points = cKDTree(uv[inside]).query(pixels)[0].mean()
+    return float(to_mask + to_points)
+
+
+def refine_to_silhouette(points: np.ndarray, cam_to_obj: np.ndarray, mask: np.ndarray, object_id: int, anchor: int,
+                         K: np.ndarray, depth: float) -> np.ndarray:
+    """``cam_to_obj (4, 4)`` shifted across the camera's view (its x and y, the depth kept) to
+    minimise :func:`silhouette_distance` in one frame's instance ids ``mask (H, W)``; ``depth``:
+    the object's typical depth, the shift's unit. Depth and orientation are kept as the
+    neighbours' motion gives them: a silhouette fixes neither well (its size changes little with
+    depth; a round object turns freely inside its own). Returned unchanged when the object is not
+    visible, no point lands in the frame, or no shift fits better."""
+    visible = mask == object_id
+    if not visible.any():
+        return cam_to_obj
+    outside = ndimage.distance_transform_edt(~visible)
+    hide = silhouette_masks(mask, object_id, anchor, 0.0)[1]
+    pixels = np.argwhere(visible)[:, ::-1] + 0.5
+    if len(pixels) > MAX_MASK_PIXELS:
+        pixels = pixels[np.linspace(0, len(pixels) - 1, MAX_MASK_PIXELS).astype(np.int64)]
+
+    def moved(x: np.ndarray) -> np.ndarray:
+        E = np.eye(4)  # the object moved by depth * (x, y, 0) in the camera's frame
+        E[:2, 3] = depth * x
+        return cam_to_obj @ invert_pose(E)
+
+    def cost(x: np.ndarray) -> float:
+        d = silhouette_distance(points, moved(x), mask, object_id, anchor, K, outside, hide, pixels)
+        return d if np.isfinite(d) else 1e6  # the line search needs finite values
+
+    start = cost(np.zeros(2))
+    if start >= 1e6:
+        return cam_to_obj
+    res = minimize(cost, np.zeros(2), method="Powell", options={"xtol": 1e-4, "ftol": 1e-4, "maxfev": 600})
+    return moved(res.x) if res.fun < start else cam_to_obj

@@ -11,7 +11,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from scenecore.cameras import invert_pose, rotation_angle_deg
+from osn.evaluate.report import _consistency_lines
 from osn.preprocess import video
+from osn.preprocess.inputs import save_inputs
 from osn.preprocess.bridge import bridged_pose
 from tests.osn.preprocess.test_consistency import BALL, BLOCK, ROOM, _preprocess, _rotated, scene  # noqa: F401
 from tests.osn.preprocess.test_sfm import sfm_scene  # noqa: F401  (the fixture: a render SfM registers)
@@ -91,7 +93,7 @@ def _errors(inputs, oid: int, reference: dict, frames: list[int]) -> list[tuple[
 
 
 @pytest.mark.slow
-def test_frames_sfm_did_not_register_are_bridged_close_to_the_poses_sfm_had(scene, monkeypatch):
+def test_frames_sfm_did_not_register_are_bridged_close_to_the_poses_sfm_had(scene, monkeypatch, tmp_path):
     taken = [2, 5]
     results = _without(scene["results"], BALL, taken)
     inputs, report = _preprocess(scene, results, monkeypatch)
@@ -107,6 +109,9 @@ def test_frames_sfm_did_not_register_are_bridged_close_to_the_poses_sfm_had(scen
     assert entry["registered_frames"] == len(results[BALL].frames) and entry["bridged_frames"] == taken
     assert all(entry["bridge"]["frames"][str(t)]["kept"] for t in taken)
     assert any(line.strip().startswith("bridged 2 of 2 unposed frames") for line in video.report_lines(report.objects))
+    # The run's report names them, from the inputs the run trained on.
+    save_inputs(tmp_path / "run" / "inputs", inputs)
+    assert "- object 1 (ball): frames 2, 5" in _consistency_lines(tmp_path / "run")
     # Without bridging the frames stay unposed and the rest is the same.
     monkeypatch.setattr(scene["cfg"], "bridge_unposed", False)
     plain, _ = _preprocess(scene, results, monkeypatch)
@@ -128,16 +133,24 @@ def test_frames_dropped_as_turned_are_bridged_back_to_the_right_pose(scene, monk
 
 @pytest.mark.slow
 def test_a_bridge_the_mask_contradicts_is_refused(scene, monkeypatch):
-    """The ball's mask in a frame it lost moved far from where its neighbours put it: no pose fits
-    it as well as the registered ones fit theirs, so the frame stays unposed."""
+    """The ball's mask in a frame it lost reshaped into a bar three times as wide (the same pixel
+    count): no shift of the ball fits it as well as the registered poses fit theirs, so the frame
+    stays unposed."""
     results = _without(scene["results"], BALL, [4])
     moved = scene["masks"].copy()
     ball = moved[4] == BALL
+    v, u = np.nonzero(ball)
     moved[4][ball] = ROOM
-    moved[4][np.roll(ball, 40, axis=1) & (moved[4] == ROOM)] = BALL
+    width = 3 * (u.max() - u.min() + 1)
+    rows = -(-len(u) // width)
+    top, left = int(v.mean()) - rows // 2, max(0, int(u.mean()) - width // 2)
+    bar = np.zeros_like(ball)
+    bar[top:top + rows, left:left + width] = True
+    moved[4][bar & (moved[4] == ROOM)] = BALL
     inputs, report = _preprocess({**scene, "masks": moved}, results, monkeypatch)
     assert 4 not in set(map(int, inputs.object(BALL).frames))
     entry = next(r for r in report.objects if r["id"] == BALL)
     rec = entry["bridge"]["frames"]["4"]
-    assert rec["kept"] is False and (rec["miss"] > entry["bridge"]["max_miss"] or rec["cover"] < entry["bridge"]["min_cover"])
+    assert rec["kept"] is False and rec["refined"] is True
+    assert rec["miss"] > entry["bridge"]["max_miss"] or rec["cover"] < entry["bridge"]["min_cover"]
     assert str(BALL) not in inputs.meta["bridged_frames"]
