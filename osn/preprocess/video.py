@@ -116,8 +116,7 @@ def _preprocess_video(
         objects.append(without_depths(obj, flags) if drop and not before else obj)
         b = bridged.get(oid)
         report.objects.append({**_object_report(oid, name, sfm, flags, drop, b.frames if b else []),
-                               "consistency": verdict.record(),
-                               **bridge_record(bridged.get(oid))})
+                               "consistency": verdict.record(), **bridge_record(b)})
     masks = masks.copy()
     for oid in report.dropped:
         masks[masks == oid] = IGNORE_ID
