@@ -90,6 +90,33 @@ class Bridged:
     min_cover: float = float("nan")
 
 
+def registered_fit(frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndarray], masks: np.ndarray,
+                   object_id: int, anchor: int, K: np.ndarray, tol_px: float) -> tuple[float, float] | None:
+    """The acceptance thresholds of a bridged pose: the worst ``(miss, cover)``
+    (:func:`~osn.preprocess.consistency.silhouette_agreement`) over the registered frames, each
+    measured with the other frames' ``points``; None where no frame could be measured."""
+    own = []
+    for n, t in enumerate(frames):
+        others = [p for m, p in enumerate(points) if m != n and len(p)]
+        if others:
+            own.append(silhouette_agreement(np.concatenate(others), cam_to_obj[n], masks[int(t)], object_id, anchor,
+                                            K, tol_px))
+    own = np.array([x for x in own if np.isfinite(x).all()])
+    return (float(own[:, 0].max()), float(own[:, 1].min())) if len(own) else None
+
+
+def _neighbours(t: int, posed: dict[int, np.ndarray], registered: np.ndarray, ts: np.ndarray,
+                chained: bool) -> tuple[int, int]:
+    """The two frames a pose at ``t`` is bridged from: past the registered span (``chained``) the
+    two posed frames nearest ``t``, in time order; inside it the registered frames around ``t``."""
+    if chained:
+        known = np.array(sorted(posed), dtype=np.int64)
+        near = known[np.argsort(np.abs(known - t), kind="stable")[:2]]
+        ta, tb = (int(x) for x in sorted(near, key=lambda x: ts[x]))
+        return ta, tb
+    return int(registered[registered < t].max()), int(registered[registered > t].min())
+
+
 def bridge_object(
     frames: np.ndarray, cam_to_obj: np.ndarray, points: list[np.ndarray], depth_median: float,
     anchor_frames: np.ndarray, anchor_cam_to_obj: np.ndarray, anchor_depth_median: float,
@@ -107,67 +134,52 @@ def bridge_object(
     out = Bridged()
     slot = {int(t): n for n, t in enumerate(anchor_frames)}
     both = [n for n, t in enumerate(frames) if int(t) in slot]
-    registered = set(map(int, frames))
-    shown = [t for t in range(len(masks)) if t not in registered and t in slot
+    shown = [t for t in range(len(masks)) if t not in set(map(int, frames)) and t in slot
              and int(np.count_nonzero(masks[t] == object_id)) >= max(min_pixels, 1)]
     if len(both) < 2 or not shown or not (depth_median > 0 and anchor_depth_median > 0):
         return out
     thin = thinned(points)
-    # The registered frames' own fit, each measured with the other frames' points.
-    own = []
-    for n, t in enumerate(frames):
-        others = [p for m, p in enumerate(thin) if m != n and len(p)]
-        if others:
-            own.append(silhouette_agreement(np.concatenate(others), cam_to_obj[n], masks[int(t)], object_id, anchor,
-                                            K, tol_px))
-    own = np.array([x for x in own if np.isfinite(x).all()])
-    if not len(own):
+    fit = registered_fit(frames, cam_to_obj, thin, masks, object_id, anchor, K, tol_px)
+    if fit is None:
         return out
-    out.max_miss, out.min_cover = float(own[:, 0].max()), float(own[:, 1].min())
+    out.max_miss, out.min_cover = fit
     pts = np.concatenate([p for p in thin if len(p)])
     ts = np.asarray(timestamps, dtype=np.float64)
     s0 = anchor_depth_median / depth_median
-    candidates = [*(s0 * SCALE_FACTORS), np.inf]
     # Posed frames (registered, then bridged) where the anchor is posed too: time index -> pose.
     posed = {int(frames[n]): cam_to_obj[n] for n in both}
-    first, last = min(posed), max(posed)
-    inner = [t for t in shown if first < t < last]
+    registered = np.array(sorted(posed), dtype=np.int64)
+    first, last = int(registered[0]), int(registered[-1])
     # Outward from the registered span, one frame at a time: each bridged frame is a neighbour of
     # the next, and the first one refused ends the chain on that side.
-    chains = [sorted(t for t in shown if t > last), sorted((t for t in shown if t < first), reverse=True)]
-    for group, chained in ((inner, False), *((c, True) for c in chains)):
+    groups = [([t for t in shown if first < t < last], False), (sorted(t for t in shown if t > last), True),
+              (sorted((t for t in shown if t < first), reverse=True), True)]
+    fits = lambda M, t: silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)  # noqa: E731
+    for group, chained in groups:
         for t in group:
-            known = np.array(sorted(posed), dtype=np.int64)
-            if chained:  # the two posed frames nearest t on its side
-                near = known[np.argsort(np.abs(known - t), kind="stable")[:2]]
-                ta, tb = (int(x) for x in sorted(near, key=lambda x: ts[x]))
-            else:  # registered frames only around an inner gap
-                reg = np.array(sorted(int(frames[n]) for n in both))
-                ta, tb = int(reg[reg < t].max()), int(reg[reg > t].min())
+            ta, tb = _neighbours(t, posed, registered, ts, chained)
             span = ts[tb] - ts[ta]
             alpha = (ts[t] - ts[ta]) / span if span > 0 else 0.5
-            best = None
-            for sc in candidates:
+            best = None  # the scale whose pose fits the silhouette best
+            for sc in [*(s0 * SCALE_FACTORS), np.inf]:
                 M = bridged_pose(alpha, posed[ta], posed[tb], anchor_cam_to_obj[slot[ta]], anchor_cam_to_obj[slot[tb]],
                                  anchor_cam_to_obj[slot[t]], sc)
-                miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
+                miss, cover = fits(M, t)
                 if np.isfinite(miss) and np.isfinite(cover) and (best is None or miss - cover < best[0]):
-                    best = (miss - cover, sc, M)
+                    best = (miss - cover, sc, M, miss, cover)
             if best is None:
                 out.record[str(t)] = {"kept": False, "why": "no point of the object lands in the frame"}
                 if chained:
                     break
                 continue
-            _, sc, M = best
-            miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
+            _, sc, M, miss, cover = best
             refined = not (miss <= out.max_miss and cover >= out.min_cover)
             if refined:  # the motion changed pace: shift the object across the view onto its silhouette
                 M = refine_to_silhouette(pts, M, masks[t], object_id, anchor, K, depth_median)
-                miss, cover = silhouette_agreement(pts, M, masks[t], object_id, anchor, K, tol_px)
+                miss, cover = fits(M, t)
             kept = bool(miss <= out.max_miss and cover >= out.min_cover)
             out.record[str(t)] = {"kept": kept, "miss": miss, "cover": cover, "from": [ta, tb], "alpha": float(alpha),
-                                  "refined": refined,
-                                  "scale_factor": None if np.isinf(sc) else float(sc / s0)}
+                                  "refined": refined, "scale_factor": None if np.isinf(sc) else float(sc / s0)}
             if kept:
                 posed[t] = M
                 out.frames.append(int(t))
@@ -183,13 +195,14 @@ def bridge_object(
 MAX_MASK_PIXELS = 2000
 
 
-def silhouette_distance(points: np.ndarray, cam_to_obj: np.ndarray, mask: np.ndarray, object_id: int, anchor: int,
-                        K: np.ndarray, outside: np.ndarray, hide: np.ndarray, pixels: np.ndarray) -> float:
+def silhouette_distance(points: np.ndarray, cam_to_obj: np.ndarray, K: np.ndarray, outside: np.ndarray,
+                        hide: np.ndarray, pixels: np.ndarray) -> float:
     """Two-sided mean distance (pixels) between the object's projected points and its visible
-    mask: points to the mask (``outside``: the distance transform of the mask's complement,
-    points on an object that may hide it not counted) plus the mask's ``pixels (P, 2)`` to the
-    nearest projected point; ``inf`` with fewer than three points in the frame."""
-    H, W = mask.shape
+    mask in one ``(H, W)`` frame: points to the mask (``outside``: the distance transform of the
+    mask's complement; points where ``hide`` says an object may hide it not counted) plus the
+    mask's ``pixels (P, 2)`` to the nearest projected point; ``inf`` with fewer than three points
+    in the frame."""
+    H, W = outside.shape
     uv, _, pix, inside = project_pixels(points, K, cam_to_obj, W, H)
     if int(inside.sum()) < 3:
         return float("inf")
@@ -224,7 +237,7 @@ def refine_to_silhouette(points: np.ndarray, cam_to_obj: np.ndarray, mask: np.nd
         return cam_to_obj @ invert_pose(E)
 
     def cost(x: np.ndarray) -> float:
-        d = silhouette_distance(points, moved(x), mask, object_id, anchor, K, outside, hide, pixels)
+        d = silhouette_distance(points, moved(x), K, outside, hide, pixels)
         return d if np.isfinite(d) else 1e6  # the line search needs finite values
 
     start = cost(np.zeros(2))
