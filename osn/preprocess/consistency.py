@@ -40,7 +40,13 @@ Signals, per object:
   error (and an anchor frame's, seen by every object at once); *cannot detect* smooth drifts (a
   reversed twin's rotations, which grow along the video) or errors in translation, and a genuine
   sudden turn between two frames looks the same, and a wrong frame also raises its neighbours'
-  figure. So it is reported (``frame_orientation_kink_deg``), not acted on.
+  figure. So a frame's figure is reported (``frame_orientation_kink_deg``), not acted on. Its
+  *median* over the frames is another matter: a few real turns raise a few frames, a
+  reconstruction wrong as a whole raises them all (``orientation_kink_deg``). It *detects* a
+  model that keeps the silhouettes and agrees with its own depths while its orientation jitters
+  against the anchor's cameras (the spin of a round object, a model assembled from misregistered
+  parts); it *cannot detect* a model wrong smoothly (a drift) or in translation only, and it
+  *cannot tell* a harmless spin about a round object's axis from a turn that moves its surface.
 
 Thresholds (none is a per-scene constant):
 
@@ -57,14 +63,21 @@ Thresholds (none is a per-scene constant):
   are well inside what the sparse-depth loss's robust scale tolerates);
 * an object misses its masks as a whole (its typical frame's share, once its contradicting frames
   are removed) above :data:`MASK_RATIO` times the other objects' median, and at least
-  :data:`MASK_FLOOR` (a segmenter's borders and the anchor's occlusions stay below it).
+  :data:`MASK_FLOOR` (a segmenter's borders and the anchor's occlusions stay below it);
+* an object's orientation jitters against the anchor (its median kink, once its contradicting
+  frames are removed) above :data:`KINK_RATIO` times the other movers' median, and at least
+  :data:`KINK_FLOOR` (the jitter of well-posed movers); alone among the movers, above the floor.
 
 Actions (:func:`assess_scene`): contradicting frames (masks or depth core) are dropped from the
 object (``repair``) when more than half of its frames, and ``min_frames``, remain; otherwise, or
 when what remains still misses its masks as a whole, its SfM is dropped (``drop``, a one-line
 warning; the anchor cannot be, and the caller stops); an object whose depths disagree with no
 half of its frames agreeing trains without its sparse depths (``no_depth``: its poses, range and
-box are kept; the depths still measure its unit against ground truth when there is one).
+box are kept; the depths still measure its unit against ground truth when there is one); an
+object whose orientation jitters against the anchor is named (reason ``orientation``, a one-line
+warning) and trained as found: the kink cannot tell a turn that moves the object's surface from a
+spin about a round object's own axis, which leaves its shape and contacts right, and dropping the
+flagged movers did not gain on the development split.
 """
 
 from __future__ import annotations
@@ -93,6 +106,11 @@ MASK_FLOOR = 0.1
 DEPTH_RATIO = 3.0
 #: ... and at least this relative disagreement.
 DEPTH_FLOOR = 0.02
+#: A mover's orientation jitters against the anchor's cameras (its median kink, degrees) at this
+#: multiple of the scene's other movers' ...
+KINK_RATIO = 3.0
+#: ... and above this many degrees (well-posed movers of the development split stay below it).
+KINK_FLOOR = 0.5
 
 
 def frame_points(cam_to_obj: np.ndarray, sparse_pix: list[np.ndarray], sparse_depth: list[np.ndarray],
@@ -295,7 +313,8 @@ class Verdict:
     figures: dict = field(default_factory=dict)
     #: ``masks``: frames whose pose sends the object's points off its masks; ``depth_frames``: a
     #: minority of frames whose depths disagree with the others'; ``object_masks``: the rest still
-    #: misses its masks (poses wrong as a whole); ``depths``: the rest's depths disagree.
+    #: misses its masks (poses wrong as a whole); ``depths``: the rest's depths disagree;
+    #: ``orientation``: the rest's orientation jitters against the anchor's cameras (named, kept).
     reasons: list[str] = field(default_factory=list)
     #: Frames dropped from the object (``masks`` and ``depth_frames``).
     bad_frames: list[int] = field(default_factory=list)
@@ -343,6 +362,10 @@ class _Measured:
     def depth_figure(self) -> float:
         return float(np.nanmedian(self.depth_pairs)) if np.isfinite(self.depth_pairs).any() else float("nan")
 
+    @property
+    def kink_figure(self) -> float:
+        return float(np.nanmedian(self.kinks)) if np.isfinite(self.kinks).any() else float("nan")
+
 
 def _measure(o: ObjectObservations, masks: np.ndarray, K: np.ndarray, timestamps: np.ndarray, anchor: int,
              anchor_obs: ObjectObservations | None) -> _Measured:
@@ -364,10 +387,10 @@ def _subset(o: ObjectObservations, keep: np.ndarray) -> ObjectObservations:
                               [o.sparse_depth[i] for i in idx], o.reprojection_error_px)
 
 
-def _threshold(figures: dict[int, float], oid: int, ratio: float, floor: float) -> float:
-    """``max(floor, ratio * median of the other objects' figures)``; NaN without another object."""
+def _threshold(figures: dict[int, float], oid: int, ratio: float, floor: float, alone: float = float("nan")) -> float:
+    """``max(floor, ratio * median of the other objects' figures)``; ``alone`` without another object."""
     others = [x for k, x in figures.items() if k != oid and np.isfinite(x)]
-    return max(floor, ratio * float(np.median(others))) if others else float("nan")
+    return max(floor, ratio * float(np.median(others))) if others else alone
 
 
 def assess_scene(objects: list[ObjectObservations], masks: np.ndarray, K: np.ndarray, timestamps: np.ndarray,
@@ -379,18 +402,22 @@ def assess_scene(objects: list[ObjectObservations], masks: np.ndarray, K: np.nda
     Frames that contradict the masks (most points miss) or, a minority, whose depths disagree with
     the other frames' are removed first and the object measured again without them; what remains
     is judged as a whole: points off its masks in its typical frame (:data:`MASK_RATIO` times the
-    other objects', at least :data:`MASK_FLOOR`) drop it, depths that disagree take its depths.
+    other objects', at least :data:`MASK_FLOOR`) drop it, depths that disagree take its depths, an
+    orientation that jitters against the anchor's (:data:`KINK_RATIO` times the other movers'
+    median kink, at least :data:`KINK_FLOOR`) is named.
     The anchor is never dropped here; the caller stops on an anchor whose verdict says ``drop``."""
     names = names or {}
     anchor_obs = next((o for o in objects if o.id == anchor), None)
     first = {o.id: _measure(o, masks, K, timestamps, anchor, anchor_obs) for o in objects}
     mask_fig = {k: m.mask_figure for k, m in first.items()}
     depth_fig = {k: m.depth_figure for k, m in first.items()}
+    kink_fig = {k: m.kink_figure for k, m in first.items()}  # NaN for the anchor: not among the movers
     verdicts = {}
     for o in objects:
         m = first[o.id]
         depth_thr = _threshold(depth_fig, o.id, DEPTH_RATIO, DEPTH_FLOOR)
         mask_thr = _threshold(mask_fig, o.id, MASK_RATIO, MASK_FLOOR)
+        kink_thr = float("nan") if o.id == anchor else _threshold(kink_fig, o.id, KINK_RATIO, KINK_FLOOR, KINK_FLOOR)
         frame_depth = frame_medians(m.depth_pairs)
         v = Verdict(o.id, figures={
             "mask_tolerance_px": m.tol,
@@ -413,12 +440,15 @@ def assess_scene(objects: list[ObjectObservations], masks: np.ndarray, K: np.nda
             rest = _subset(o, ~np.isin(o.frames, v.bad_frames))
             m = _measure(rest, masks, K, timestamps, anchor, anchor_obs)
         v.figures.update(mask_miss=_finite(m.mask_figure), mask_miss_threshold=_finite(mask_thr),
-                         depth_disagreement=_finite(m.depth_figure), depth_disagreement_threshold=_finite(depth_thr))
+                         depth_disagreement=_finite(m.depth_figure), depth_disagreement_threshold=_finite(depth_thr),
+                         orientation_kink_deg=_finite(m.kink_figure), orientation_kink_threshold_deg=_finite(kink_thr))
         if np.isfinite(mask_thr) and np.isfinite(m.mask_figure) and m.mask_figure > mask_thr:
             v.reasons.append("object_masks")
         if np.isfinite(depth_thr) and np.isfinite(m.depth_figure) and m.depth_figure > depth_thr:
             v.reasons.append("depths")
             v.use_depths = False
+        if np.isfinite(kink_thr) and np.isfinite(m.kink_figure) and m.kink_figure > kink_thr:
+            v.reasons.append("orientation")
         _decide(v, len(o.frames), min_frames, o.id == anchor, f"object {o.id}" + (f" ({names[o.id]})" if o.id in names else ""))
         verdicts[o.id] = v
     return verdicts
@@ -440,6 +470,9 @@ def _decide(v: Verdict, registered: int, min_frames: int, is_anchor: bool, label
     if "depths" in v.reasons:
         what.append(f"its sparse depths disagree across frames by {100 * f['depth_disagreement']:.1f}% "
                     f"(threshold {100 * f['depth_disagreement_threshold']:.1f}%)")
+    if "orientation" in v.reasons:
+        what.append(f"its orientation against the anchor's cameras jumps by {f['orientation_kink_deg']:.1f} degrees "
+                    f"in its typical frame (threshold {f['orientation_kink_threshold_deg']:.1f})")
     if not what:
         return
     left = registered - len(v.bad_frames)
@@ -449,5 +482,7 @@ def _decide(v: Verdict, registered: int, min_frames: int, is_anchor: bool, label
                 else "its SfM is not used: training without it")
     else:
         todo = "; ".join(([f"those frames are dropped ({left} kept)"] if v.bad_frames else [])
-                         + ([] if v.use_depths else ["it trains without its sparse depths"]))
+                         + ([] if v.use_depths else ["it trains without its sparse depths"])
+                         + (["its poses are trained as found: a turn about a round object's axis leaves its shape "
+                             "right, its contacts may be off"] if "orientation" in v.reasons else []))
     v.message = f"{label}: SfM inconsistent: {'; '.join(what)}; {todo}"

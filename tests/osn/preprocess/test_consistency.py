@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from scenecore import dataset as D
 from osn.evaluate.report import _consistency_lines
 from osn.preprocess import video
-from osn.preprocess.consistency import ObjectObservations, assess_scene, consistent_core, frame_medians
+from osn.preprocess.consistency import ObjectObservations, assess_scene, consistent_core, frame_medians, frame_points
 from osn.preprocess.inputs import IGNORE_ID, save_inputs
 from osn.preprocess.sfm import ObjectRegistrationError, PreprocessConfig
 from tests.osn.preprocess.test_sfm import sfm_scene  # noqa: F401  (the fixture: a render SfM registers)
@@ -152,6 +152,46 @@ def test_a_mirrored_trajectory_drops_the_object(scene, monkeypatch, caplog):
     assert entry["consistency"]["action"] == "drop" and "training without it" in entry["error"]
     assert any("object 1 (ball)" in r.getMessage() and "not used" in r.getMessage() for r in caplog.records)
     assert all(next(r for r in report.objects if r["id"] == k)["consistency"]["action"] == "keep" for k in (ROOM, BLOCK))
+
+
+def _spun(results: dict, oid: int, K: np.ndarray, degrees: tuple[float, float], seed: int = 0) -> dict:
+    """A copy of ``results`` with object ``oid``'s model turned about the centre of its points by a
+    random rotation of ``degrees`` (low, high) per frame. For a ball every frame's points stay on
+    its surface, so its silhouettes and depths keep agreeing; its orientation in the room does not."""
+    out = copy.deepcopy(results)
+    r = out[oid]
+    centre = np.median(np.concatenate(frame_points(r.cam_to_obj, r.sparse_pix, r.sparse_depth, K)), axis=0)
+    rng = np.random.default_rng(seed)
+    for n in range(len(r.frames)):
+        axis = rng.normal(size=3)
+        turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(rng.uniform(*degrees))).as_matrix()
+        Q = np.eye(4)
+        Q[:3, :3], Q[:3, 3] = turn, centre - turn @ centre
+        r.cam_to_obj[n] = Q @ r.cam_to_obj[n]
+    return out
+
+
+def test_a_model_spinning_against_the_anchor_is_named(scene, monkeypatch, caplog, tmp_path):
+    """The ball's model turned about its centre by 4-8 degrees per frame: wrong as a whole (a round
+    object's spin), yet its points stay on its masks and its depths agree; its orientation against
+    the room's cameras jumps in every frame, which names it. A spin leaves a ball's shape right, so
+    it trains as found, named in the warning and the run's report."""
+    broken = _spun(scene["results"], BALL, scene["K"], (4.0, 8.0))
+    ball = _assess(scene, broken)[BALL].record()
+    assert ball["reasons"] == ["orientation"] and ball["action"] == "keep", ball
+    assert ball["mask_miss"] < ball["mask_miss_threshold"] and ball["depth_disagreement"] < ball["depth_disagreement_threshold"]
+    good = _assess(scene, scene["results"])[BALL].record()  # the ball as SfM made it
+    assert ball["orientation_kink_deg"] > ball["orientation_kink_threshold_deg"] > 2 * good["orientation_kink_deg"], (ball, good)
+    assert good["reasons"] == [] and good["action"] == "keep"
+    with caplog.at_level(logging.WARNING, logger="osn.preprocess.video"):
+        inputs, report = _preprocess(scene, broken, monkeypatch)
+    assert report.dropped == [] and set(broken[BALL].frames) <= set(inputs.object(BALL).frames)
+    (warning,) = [r.getMessage() for r in caplog.records if "SfM inconsistent" in r.getMessage()]
+    assert "\n" not in warning and "object 1 (ball)" in warning and "orientation" in warning and "trained as found" in warning
+    assert any(line.strip().startswith("keep: object 1 (ball)") for line in video.report_lines(report.objects))
+    run = tmp_path / "run"
+    save_inputs(run / "inputs", inputs)
+    assert [line for line in _consistency_lines(run) if line.startswith("- keep: object 1 (ball)")], _consistency_lines(run)
 
 
 def test_an_anchor_contradicted_in_most_frames_stops(scene, monkeypatch):
