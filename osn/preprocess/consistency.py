@@ -417,7 +417,8 @@ def assess_scene(objects: list[ObjectObservations], masks: np.ndarray, K: np.nda
         m = first[o.id]
         depth_thr = _threshold(depth_fig, o.id, DEPTH_RATIO, DEPTH_FLOOR)
         mask_thr = _threshold(mask_fig, o.id, MASK_RATIO, MASK_FLOOR)
-        kink_thr = float("nan") if o.id == anchor else _threshold(kink_fig, o.id, KINK_RATIO, KINK_FLOOR, KINK_FLOOR)
+        kink_thr = (float("nan") if o.id == anchor
+                    else _threshold(kink_fig, o.id, KINK_RATIO, KINK_FLOOR, alone=KINK_FLOOR))
         frame_depth = frame_medians(m.depth_pairs)
         v = Verdict(o.id, figures={
             "mask_tolerance_px": m.tol,
@@ -483,6 +484,6 @@ def _decide(v: Verdict, registered: int, min_frames: int, is_anchor: bool, label
     else:
         todo = "; ".join(([f"those frames are dropped ({left} kept)"] if v.bad_frames else [])
                          + ([] if v.use_depths else ["it trains without its sparse depths"])
-                         + (["its poses are trained as found: a turn about a round object's axis leaves its shape "
-                             "right, its contacts may be off"] if "orientation" in v.reasons else []))
+                         + (["its poses are trained as found (a spin about a round object's axis leaves its shape "
+                             "right; a wrong turn puts its contacts off)"] if "orientation" in v.reasons else []))
     v.message = f"{label}: SfM inconsistent: {'; '.join(what)}; {todo}"
