@@ -13,20 +13,16 @@ import pytest
 import torch
 
 from scenecore import export_format as osn_core
+from tests.osn.cli.conftest import TINY_DEMO
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]
-DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs-from", "oracle", "--field-iterations", "150", "-n", "60",
-        "--max-views", "3", "--workers", "1"]
+DEMO = TINY_DEMO
 
 
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory) -> Path:
-    work = tmp_path_factory.mktemp("demo") / "work"
-    r = subprocess.run([sys.executable, *DEMO, "--work", str(work)], capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "best of 60" in r.stdout and "report:" in r.stdout
-    return work
+@pytest.fixture
+def demo(tiny_demo: Path) -> Path:
+    return tiny_demo
 
 
 def test_outputs_are_sensible(demo):

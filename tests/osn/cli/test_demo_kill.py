@@ -20,18 +20,14 @@ from typing import Any, Callable
 import pytest
 import torch
 
+from tests.osn.cli.conftest import TINY_DEMO, run_tiny_demo
+
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]
-DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs-from", "oracle", "--field-iterations", "150", "-n", "60",
-        "--max-views", "3", "--workers", "1"]
 # Wall times in metrics.json (osn/evaluate/bestofn.py, osn/evaluate/report.py); everything else must be equal.
 TIMING = ("timings.", "train_seconds", "curves.search_seconds_per_view_vs_n.")
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
-
-
-def _demo(work: Path, timeout: float = 900) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *DEMO, "--work", str(work)], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, env=ENV)
+_demo = run_tiny_demo
 
 
 def _flat(x: Any, prefix: str = "") -> dict[str, Any]:
@@ -62,7 +58,7 @@ def _kill_demo_when(work: Path, ready: Callable[[str], bool], timeout: float = 6
     """Start the demo on ``work``; SIGKILL its process group once ``ready(stdout so far)`` is true."""
     log = work.parent / "killed.log"
     with open(log, "w") as f:
-        proc = subprocess.Popen([sys.executable, *DEMO, "--work", str(work)], cwd=ROOT, env=ENV, stdout=f,
+        proc = subprocess.Popen([sys.executable, *TINY_DEMO, "--work", str(work)], cwd=ROOT, env=ENV, stdout=f,
                                 stderr=subprocess.STDOUT, start_new_session=True)
     deadline = time.monotonic() + timeout
     try:
@@ -79,13 +75,10 @@ def _files(d: Path) -> set[str]:
     return {str(p.relative_to(d)) for p in d.rglob("*") if p.is_file()}
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Path:
+@pytest.fixture
+def reference(tiny_demo: Path) -> Path:
     """An uninterrupted demo."""
-    work = tmp_path_factory.mktemp("kill_ref") / "work"
-    r = _demo(work)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return work
+    return tiny_demo
 
 
 def test_demo_killed_in_train_resumes_to_equal_metrics(reference: Path, tmp_path: Path) -> None:
