@@ -51,7 +51,14 @@ def _load_spec(args: argparse.Namespace):
 def _report(summary) -> int:
     for line in summary.lines():
         print(line)
-    return 0 if summary.passed else 1
+    if summary.passed:
+        return 0
+    # The lines above say everything; stderr gets one line, as for every other failure.
+    cfgs = summary.verification.get("configurations", [])
+    bad = [c for c in cfgs if not c["passed"]]
+    first = f" (configuration {bad[0]['index']:03d}: {'; '.join(bad[0]['failures'])})" if bad else ""
+    print(f"benchgen: {summary.root}: verification failed: {len(bad)} of {len(cfgs)} configurations{first}", file=sys.stderr)
+    return 1
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
