@@ -15,8 +15,6 @@ moves the camera and the objects between renders. Choices that keep the benchmar
 * band-limited textures (``TEXTURE_OCTAVES``, node scale 1): colour must not vary much below the
   pixel scale, because a rescaled object's hit points move by float32 rounding (~1e-7 m, up to
   ~1e-4 m at grazing angles) and the texture gradient multiplies that into a colour difference;
-* poses stored as quaternions (``rotation_mode``): Euler angles near gimbal lock would add their
-  own decomposition error to that rounding;
 * no denoiser, no adaptive sampling, fixed seed, Standard view transform, no dither;
 * depth (planar), object index and normal come from the view-layer passes of a multilayer EXR
   written to a temporary directory (``Render Result`` pixels are empty in background mode).
@@ -127,7 +125,6 @@ class Renderer:
         cam.angle = math.radians(fov_from_intrinsics(built.scene.intrinsics.matrix(), built.scene.width))
         cam.clip_start, cam.clip_end = 1e-3, 1e4  # configurations bring objects close to the camera
         self.camera = bpy.data.objects.new("camera", cam)
-        self.camera.rotation_mode = "QUATERNION"  # see _add_object
         self.scene.collection.objects.link(self.camera)
         self.scene.camera = self.camera
 
@@ -174,11 +171,6 @@ class Renderer:
         mesh.update()
         obj = bpy.data.objects.new(geom.name, mesh)
         obj.pass_index = index + 1  # 0 is "nothing" in the Object Index pass
-        # Assigning matrix_world decomposes it into location, rotation and scale. Euler angles lose
-        # precision near gimbal lock (a middle angle near 90 degrees, as random orientations give):
-        # the rebuilt matrix is off by many times float rounding, and a rescaled object's hit points
-        # move with it. Quaternions decompose equally well at every orientation.
-        obj.rotation_mode = "QUATERNION"
         self.scene.collection.objects.link(obj)
         return obj
 
