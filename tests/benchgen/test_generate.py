@@ -451,4 +451,3 @@ def test_a_render_does_not_depend_on_what_was_rendered_before():
         assert np.array_equal(a.depth, b.depth)
     with pytest.raises(ValueError, match="2 poses for 3 objects"):
         used.render(target.camera_to_world, built.poses(0)[:2])
-

@@ -15,10 +15,10 @@ TINY_DEMO = ["-m", "osn.cli", "demo", "--preset", "tiny", "--inputs-from", "orac
              "--max-views", "3", "--workers", "1"]
 
 
-def run_tiny_demo(work: Path, timeout: float = 900, **kw) -> subprocess.CompletedProcess:
+def run_tiny_demo(work: Path, timeout: float = 900) -> subprocess.CompletedProcess:
     """``osn demo`` with :data:`TINY_DEMO`'s options on ``work``, output captured."""
     return subprocess.run([sys.executable, *TINY_DEMO, "--work", str(work)], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"}, **kw)
+                          cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
 @pytest.fixture(scope="session")
